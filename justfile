@@ -1,0 +1,59 @@
+# Crater-based absolute navigation: one recipe per stage, plus run, sweep, test, bench, sql, view.
+# Recipes use the project's virtual environment (.venv) when it exists.
+
+set positional-arguments
+export PATH := justfile_directory() / ".venv/bin" + ":" + env("PATH")
+
+py := "python -m pipeline"
+
+# list the recipes
+default:
+    @just --list
+
+# every stage on a scenario (default: the paper's case on the synthetic catalogue)
+run *args:
+    {{py}} run "$@"
+
+# stage 1: ingest a crater catalogue into catalogue/craters.duckdb (e.g. --source ../shared/data/robbins2018_ge20km.csv)
+ingest *args:
+    {{py}} ingest "$@"
+
+# stage 2: propagate the descent to impact
+trajectory *args:
+    {{py}} trajectory "$@"
+
+# stage 3: visible, identified, used craters and their measurements
+detect *args:
+    {{py}} detect "$@"
+
+# stage 4: pose estimation (the paper's method and the joint ML)
+estimate *args:
+    {{py}} estimate "$@"
+
+# stage 5: scores, CRLB and report.md
+score *args:
+    {{py}} score "$@"
+
+# the crater-cap sweep: the paper's Table 1 (caps x methods x seeds)
+sweep *args:
+    {{py}} sweep "$@"
+
+# read-only SQL over the catalogue (add --run RUN for a run's tables)
+sql *args:
+    {{py}} sql "$@"
+
+# open a run's recordings in the Rerun viewer
+view run="default" *args:
+    {{py}} view "$@"
+
+# the test suite (uses both cores)
+test *args:
+    python -m pytest -n 2 "$@"
+
+# benchmarks: figures printed and saved to runs/bench/
+bench *args:
+    {{py}} bench "$@"
+
+# lint
+lint:
+    ruff check pipeline tests

@@ -1,0 +1,1 @@
+"""Pure numerical core: numpy/scipy (and healpy) only, no files, databases, logging or Rerun."""
