@@ -304,7 +304,7 @@ def read_meta(db_path: Path) -> dict[str, Any] | None:
     except duckdb.Error:
         return None
     try:
-        rows = con.execute("SELECT * FROM catalogue_meta").pl().to_dicts()
+        rows = con.sql("SELECT * FROM catalogue_meta").pl().to_dicts()
     except duckdb.Error:
         return None
     finally:

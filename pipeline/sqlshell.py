@@ -36,7 +36,7 @@ def run_query(query: str, db_path: Path, run_id: str | None, max_rows: int) -> N
         raise PipelineError(f"SQL error: {exc}") from None
     if rel is None:
         return
-    columns, rows = rel.columns, rel.fetchmany(max_rows + 1)
+    columns, rows = rel.columns, rel.limit(max_rows + 1).fetchall()
     table = Table(*columns, show_lines=False)
     for row in rows[:max_rows]:
         table.add_row(*(_fmt(v) for v in row))

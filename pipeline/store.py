@@ -95,7 +95,8 @@ class RunStore:
     def is_fresh(self, stage: str, key: str) -> bool:
         e = self.entry(stage)
         return (e is not None and e["key"] == key
-                and all(self.path(name).exists() for name in e["outputs"]))
+                and all(self.path(name).exists() for name in e["outputs"])
+                and (not e["tables"] or self.duckdb_path.exists()))
 
     def write_config(self, cfg: RunConfig) -> Path:
         """Snapshot of the resolved config (what this run's stages ran with)."""

@@ -1,12 +1,13 @@
 """Stage execution: cache keys, freshness, upstream checks, transactions and progress.
 
-Each stage module defines `NAME`, `UPSTREAM`, `key_parts(cfg)` (what besides upstream keys and the
-code version determines its outputs) and `run(cfg, store, tx) -> StageResult`; it may define
+Each stage module `pipeline.stages.<name>` defines `key_parts(cfg)` (what besides its upstream keys
+and the code version determines its outputs) and `run(cfg, store, tx) -> StageResult`; it may define
 `is_fresh(cfg, store, key)` when freshness depends on more than the run folder.
 """
 
 from __future__ import annotations
 
+import importlib
 import time
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
@@ -28,7 +29,8 @@ from pipeline.config import RunConfig, config_hash
 from pipeline.errors import StageInputError
 from pipeline.store import RunStore, code_version
 
-console = Console(stderr=True)
+console = Console(stderr=True, soft_wrap=True)  # status and progress
+out = Console(soft_wrap=True)  # what a command wrote where
 
 
 @dataclass(frozen=True)
@@ -39,22 +41,29 @@ class StageResult:
     summary: tuple[str, ...] = ()
 
 
-def modules() -> dict[str, ModuleType]:
-    """Stage modules in pipeline order."""
-    from pipeline.stages import detect, estimate, ingest, score, trajectory
+# Stage -> the stages whose outputs it reads, in pipeline order.
+UPSTREAM: dict[str, tuple[str, ...]] = {
+    "ingest": (),
+    "trajectory": (),
+    "detect": ("ingest", "trajectory"),
+    "estimate": ("detect",),
+    "score": ("trajectory", "detect", "estimate"),
+}
+ORDER = tuple(UPSTREAM)
 
-    return {m.NAME: m for m in (ingest, trajectory, detect, estimate, score)}
 
-
-ORDER = ("ingest", "trajectory", "detect", "estimate", "score")
+def module(name: str) -> ModuleType:
+    """The module of stage `name` (imported on first use)."""
+    if name not in UPSTREAM:
+        raise StageInputError(f"unknown stage {name!r}; stages are {list(ORDER)}")
+    return importlib.import_module(f"pipeline.stages.{name}")
 
 
 def downstream_of(stage: str) -> list[str]:
     """`stage` and every stage that depends on it, in pipeline order."""
-    mods = modules()
     out = {stage}
     for name in ORDER:
-        if any(u in out for u in mods[name].UPSTREAM):
+        if any(u in out for u in UPSTREAM[name]):
             out.add(name)
     return [n for n in ORDER if n in out]
 
@@ -63,22 +72,20 @@ def stage_key(name: str, cfg: RunConfig, _memo: dict[str, str] | None = None) ->
     """Cache key of a stage: its config parts, its upstream keys and the code version."""
     memo = {} if _memo is None else _memo
     if name not in memo:
-        mod = modules()[name]
-        upstream = [stage_key(u, cfg, memo) for u in mod.UPSTREAM]
-        memo[name] = config_hash(name, *mod.key_parts(cfg), upstream, code_version())
+        upstream = [stage_key(u, cfg, memo) for u in UPSTREAM[name]]
+        memo[name] = config_hash(name, *module(name).key_parts(cfg), upstream, code_version())
     return memo[name]
 
 
 def is_fresh(name: str, cfg: RunConfig, store: RunStore, key: str) -> bool:
-    mod = modules()[name]
-    check = getattr(mod, "is_fresh", None)
+    check = getattr(module(name), "is_fresh", None)
     return check(cfg, store, key) if check else store.is_fresh(name, key)
 
 
 def check_upstream(name: str, cfg: RunConfig, store: RunStore) -> dict[str, Any]:
     """Upstream inputs of a stage, or StageInputError when one is missing or stale."""
     inputs = {}
-    for u in modules()[name].UPSTREAM:
+    for u in UPSTREAM[name]:
         key = stage_key(u, cfg)
         if not is_fresh(u, cfg, store, key):
             raise StageInputError(
@@ -101,14 +108,14 @@ def execute(name: str, cfg: RunConfig, store: RunStore, force: bool = False) -> 
     t0 = time.perf_counter()
     console.print(f"[bold]{name}[/bold]: running (run {store.run_id})")
     try:
-        result = modules()[name].run(cfg, store, tx)
+        result = module(name).run(cfg, store, tx)
         tx.commit(result.info)
     except BaseException:
         tx.abort()
         raise
-    console.print(f"{name}: done in {time.perf_counter() - t0:.1f} s")
+    out.print(f"{name}: done in {time.perf_counter() - t0:.1f} s")
     for line in result.summary:
-        console.print(f"  {line}")
+        out.print(f"  {line}")
     return True
 
 

@@ -19,9 +19,6 @@ from pipeline import recording
 from pipeline.config import RunConfig
 from pipeline.store import RunStore, StageTransaction, now_iso, sha256_file
 
-NAME = "ingest"
-UPSTREAM: tuple[str, ...] = ()
-
 
 def source_fingerprint(cfg: RunConfig) -> dict[str, Any]:
     """The catalogue source and, for a file, its sha256 (content changes invalidate the key)."""
@@ -42,7 +39,7 @@ def key_parts(cfg: RunConfig) -> tuple[Any, ...]:
 
 def is_fresh(cfg: RunConfig, store: RunStore, key: str) -> bool:
     meta = cat.read_meta(Path(cfg.catalogue.db_path))
-    return store.is_fresh(NAME, key) and meta is not None and meta.get("key") == key
+    return store.is_fresh("ingest", key) and meta is not None and meta.get("key") == key
 
 
 def build(cfg: RunConfig, key: str) -> dict[str, Any]:
