@@ -50,6 +50,7 @@ class CatalogueConfig:
         _check(0 <= self.healpix_order <= 12, "catalogue.healpix_order", "must be in 0..12")
         if self.max_reject_share is not None:
             _check(0 <= self.max_reject_share <= 1, "catalogue.max_reject_share", "not in [0, 1]")
+        _check(self.seed >= 0, "catalogue.seed", "must be >= 0")
         _check(
             0 < self.synthetic_min_diam_km < self.synthetic_max_diam_km,
             "catalogue.synthetic_min_diam_km",
@@ -73,6 +74,7 @@ class TrajectoryConfig:
     specific_force_body_m_s2: tuple[float, ...]  # constant thrust acceleration, body frame
     jitter_rate_sigma_rad_s: float  # pointing jitter: std of the body-rate noise per axis
     jitter_knot_s: float  # knot spacing of the (piecewise-linear) jitter rate
+    jitter_seed: int  # the jitter is part of the truth: its own seed, shared by a sweep's runs
     rtol: float
     atol_m: float
 
@@ -87,6 +89,7 @@ class TrajectoryConfig:
                "needs 3 components")
         _check(self.jitter_rate_sigma_rad_s >= 0, "trajectory.jitter_rate_sigma_rad_s", "< 0")
         _check(self.jitter_knot_s > 0, "trajectory.jitter_knot_s", "must be > 0")
+        _check(self.jitter_seed >= 0, "trajectory.jitter_seed", "must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -187,6 +190,7 @@ class SweepConfig:
         _check(len(self.caps) > 0 and len(self.seeds) > 0, "sweep", "needs caps and seeds")
         for m in self.methods:
             _check(m in METHODS, "sweep.methods", f"unknown method {m!r}")
+        _check(all(s >= 0 for s in self.seeds), "sweep.seeds", "seeds must be >= 0")
         _check(self.workers >= 1, "sweep.workers", "must be >= 1")
 
 
@@ -203,6 +207,9 @@ class RunConfig:
     estimation: EstimationConfig
     scoring: ScoringConfig
     sweep: SweepConfig
+
+    def __post_init__(self) -> None:
+        _check(self.seed >= 0, "seed", "must be >= 0")
 
 
 # --- loading -------------------------------------------------------------------------------------
@@ -247,12 +254,13 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
 def _build(cls: type, data: dict[str, Any], where: str) -> Any:
     hints = typing.get_type_hints(cls)
     names = [f.name for f in dataclasses.fields(cls)]
+    section = where or "top level"
     unknown = sorted(set(data) - set(names))
     if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; known keys: {names}")
+        raise ConfigError(f"{section}: unknown key(s) {unknown}; known keys: {names}")
     missing = [n for n in names if n not in data]
     if missing:
-        raise ConfigError(f"{where}: missing key(s) {missing}")
+        raise ConfigError(f"{section}: missing key(s) {missing}")
     prefix = f"{where}." if where else ""
     kwargs = {n: _coerce(data[n], hints[n], f"{prefix}{n}") for n in names}
     return cls(**kwargs)
@@ -273,6 +281,28 @@ def scenario_path(name_or_path: str) -> Path:
     return SCENARIO_DIR / f"{name_or_path}.toml"
 
 
+_DERIVED_KEYS = ("name", "run_id")  # set by load_config, never by a scenario file
+
+
+def _check_keys(cls: type, data: dict[str, Any], where: str) -> None:
+    """Unknown keys of one scenario file (before `extends` merges files), named with their path."""
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)
+             if not (cls is RunConfig and f.name in _DERIVED_KEYS)]
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        raise ConfigError(f"{where or 'top level'}: unknown key(s) {unknown}; known keys: {names}")
+    prefix = f"{where}." if where else ""
+    for name, value in data.items():
+        tp = hints[name]
+        item = typing.get_args(tp)[0] if typing.get_origin(tp) is tuple else tp
+        if dataclasses.is_dataclass(item):
+            for i, v in enumerate(value if isinstance(value, list) else [value]):
+                if isinstance(v, dict):
+                    key = f"{prefix}{name}[{i}]" if isinstance(value, list) else f"{prefix}{name}"
+                    _check_keys(item, v, key)
+
+
 def _read_scenario(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     if not path.is_file():
         known = sorted(q.stem for q in SCENARIO_DIR.glob("*.toml"))
@@ -284,6 +314,10 @@ def _read_scenario(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
     parent = data.pop("extends", None)
+    try:
+        _check_keys(RunConfig, data, "")
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
     if parent is None:
         return data
     return _merge(_read_scenario(scenario_path(parent), (*seen, path.resolve())), data)
@@ -297,8 +331,12 @@ def load_config(scenario: str = "default", run_id: str | None = None,
     """
     path = scenario_path(scenario)
     data = _read_scenario(path)
+    try:
+        _check_keys(RunConfig, overrides or {}, "")
+    except ConfigError as exc:
+        raise ConfigError(f"override: {exc}") from None
     data = _merge(data, overrides or {})
-    data = {"name": path.stem, "run_id": run_id or path.stem, **data}
+    data = {**data, "name": path.stem, "run_id": run_id or path.stem}
     try:
         return _build(RunConfig, data, "")
     except ConfigError as exc:

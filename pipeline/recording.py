@@ -88,3 +88,112 @@ def log_ingest(rec: rr.RecordingStream, r_mcmf_m: np.ndarray, diam_km: np.ndarra
     rec.log("/world/moon/craters",
             rr.Points3D(r_mcmf_m.astype(np.float32), radii=(diam_km * 500.0).astype(np.float32),
                         colors=diameter_colors(diam_km)), static=True)
+
+
+AXIS_COLORS = np.array([(230, 60, 60), (60, 200, 60), (70, 110, 240)], dtype=np.uint8)  # x, y, z
+BODY_AXIS_LENGTH_M = 60e3
+PATH_COLOR = (220, 40, 40)
+
+
+def log_trajectory(rec: rr.RecordingStream, frame: np.ndarray, t_s: np.ndarray,
+                   r_mci_m: np.ndarray, v_mci_m_s: np.ndarray, q_mci_from_body: np.ndarray,
+                   theta_m_rad: np.ndarray, altitude_m: np.ndarray) -> None:
+    """Moon rotation, the true path, the spacecraft pose with its body axes (the paper's Fig. 3),
+    altitude and speed."""
+    log_moon(rec)
+    times = time_columns(frame, t_s)
+    half = np.asarray(theta_m_rad) / 2.0
+    q_mci_from_mcmf = np.stack([np.zeros_like(half), np.zeros_like(half), np.sin(half),
+                                np.cos(half)], axis=1)
+    rec.send_columns("/world/moon", indexes=times,
+                     columns=rr.Transform3D.columns(quaternion=q_mci_from_mcmf))
+    rec.log("/world/path", rr.LineStrips3D([r_mci_m.astype(np.float32)], colors=[PATH_COLOR]),
+            static=True)
+    rec.send_columns("/world/spacecraft", indexes=times,
+                     columns=rr.Transform3D.columns(translation=r_mci_m,
+                                                    quaternion=q_mci_from_body))
+    rec.log("/world/spacecraft/axes",
+            rr.Arrows3D(vectors=np.eye(3) * BODY_AXIS_LENGTH_M, colors=AXIS_COLORS,
+                        labels=["x (along track)", "y (-orbit normal)", "z (nadir, boresight)"]),
+            static=True)
+    send_scalars(rec, "/trajectory/altitude_km", frame, t_s, altitude_m / 1e3, "altitude (km)")
+    send_scalars(rec, "/trajectory/speed_m_s", frame, t_s, np.linalg.norm(v_mci_m_s, axis=1),
+                 "speed (m/s)")
+
+
+VISIBLE_COLOR = (175, 175, 175)
+USED_COLOR = (255, 150, 0)
+FALSE_MATCH_COLOR = (230, 0, 230)
+FOOTPRINT_COLOR = (170, 90, 230)  # the paper's purple camera limits
+IMAGE_PLANE_DISTANCE_M = 30e3
+OUTLINE_SAMPLES_PER_EDGE = 8
+
+
+def _points3d(rec: rr.RecordingStream, entity: str, times, positions: np.ndarray,
+              radii: np.ndarray, lengths: np.ndarray, color) -> None:
+    rec.log(entity, rr.Points3D.from_fields(colors=[color]), static=True)
+    rec.send_columns(entity, indexes=times, columns=rr.Points3D.columns(
+        positions=positions.astype(np.float32), radii=radii.astype(np.float32)).partition(lengths))
+
+
+def _points2d(rec: rr.RecordingStream, entity: str, times, positions: np.ndarray,
+              radii: np.ndarray, lengths: np.ndarray, color) -> None:
+    rec.log(entity, rr.Points2D.from_fields(colors=[color]), static=True)
+    rec.send_columns(entity, indexes=times, columns=rr.Points2D.columns(
+        positions=positions.astype(np.float32), radii=radii.astype(np.float32)).partition(lengths))
+
+
+def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames_table) -> None:
+    """Camera (Pinhole) with the synthetic view, frustum limit lines and footprint, visible and
+    used craters per frame, and the counts."""
+    from pipeline.core import camera, frames
+    from pipeline.tables import quats, xyz
+
+    frame = frames_table["frame"].to_numpy()
+    t_s = frames_table["t_s"].to_numpy()
+    times = time_columns(frame, t_s)
+    size = model.image_size_px
+    rec.log("/world/spacecraft/camera",
+            rr.Pinhole(image_from_camera=model.k, resolution=[size, size],
+                       camera_xyz=rr.ViewCoordinates.RDF,
+                       image_plane_distance=IMAGE_PLANE_DISTANCE_M), static=True)
+
+    # Limit lines and footprint outline in MCI (horizon-bounded where a ray misses).
+    r_mci = xyz(trajectory, "r_mci", "_m")
+    dcm = frames.dcm_from_q(quats(trajectory, "q_mci_from_body"))
+    corner_rays = model.fov.border_rays_body(1)
+    border_rays = model.fov.border_rays_body(OUTLINE_SAMPLES_PER_EDGE)
+    frustum, outline = [], []
+    for r, d in zip(r_mci, dcm, strict=True):
+        corners = camera.surface_points(r, corner_rays @ d.T, model.moon_radius_m)
+        frustum.extend(np.stack([np.broadcast_to(r, corners.shape), corners], 1))
+        ring = camera.surface_points(r, border_rays @ d.T, model.moon_radius_m)
+        outline.append(np.vstack([ring, ring[:1]]))
+    rec.log("/world/frustum", rr.LineStrips3D.from_fields(colors=[FOOTPRINT_COLOR]), static=True)
+    rec.send_columns("/world/frustum", indexes=times, columns=rr.LineStrips3D.columns(
+        strips=[s.astype(np.float32) for s in frustum]).partition(np.full(frame.size, 4)))
+    rec.log("/world/footprint", rr.LineStrips3D.from_fields(colors=[FOOTPRINT_COLOR]),
+            static=True)
+    rec.send_columns("/world/footprint", indexes=times, columns=rr.LineStrips3D.columns(
+        strips=[s.astype(np.float32) for s in outline]).partition(np.ones(frame.size, int)))
+
+    # Visible and used craters on the Moon (MCMF) and in the camera view (pixels).
+    theta = trajectory["theta_m_rad"].to_numpy()
+    n_visible = frames_table["n_visible"].to_numpy()
+    c_mcmf = frames.mcmf_from_mci(xyz(detections, "c_mci", "_m"), np.repeat(theta, n_visible))
+    radius_m = detections["diam_km"].to_numpy() * 500.0
+    pixel = np.stack([detections["pixel_u"].to_numpy(), detections["pixel_v"].to_numpy()], 1)
+    radius_px = radius_m / detections["rho_meas_m"].to_numpy() * model.k[0, 0]
+    used = detections["used"].to_numpy()
+    n_used = frames_table["n_used"].to_numpy()
+    _points3d(rec, "/world/moon/visible", times, c_mcmf, radius_m, n_visible, VISIBLE_COLOR)
+    _points3d(rec, "/world/moon/used", times, c_mcmf[used], radius_m[used], n_used, USED_COLOR)
+    cam = "/world/spacecraft/camera"
+    _points2d(rec, f"{cam}/visible", times, pixel, radius_px, n_visible, VISIBLE_COLOR)
+    _points2d(rec, f"{cam}/used", times, pixel[used], radius_px[used], n_used, USED_COLOR)
+
+    for name, column in (("candidates", "n_candidates"), ("visible", "n_visible"),
+                         ("identified", "n_identified"), ("used", "n_used")):
+        send_scalars(rec, f"/counts/{name}", frame, t_s, frames_table[column].to_numpy(), name)
+    send_scalars(rec, "/detection/d_min_km", frame, t_s, frames_table["d_min_km"].to_numpy(),
+                 "Eq. 9 threshold (km)")

@@ -12,20 +12,24 @@ from pipeline.errors import PipelineError
 
 
 def connect(db_path: Path, run_id: str | None) -> duckdb.DuckDBPyConnection:
-    """In-memory session with the catalogue attached read-only as `catalogue` (the default schema),
-    and with `run_id` given, runs/<run_id>/run.duckdb read-only as `run` (then the default)."""
+    """A read-only session on the catalogue (so nothing, not even a re-ATTACH, can write); with
+    `run_id`, runs/<run_id>/run.duckdb is attached read-only as `run` and becomes the default
+    schema (the catalogue stays reachable as `craters.<table>`)."""
     if not db_path.is_file():
         raise PipelineError(f"{db_path}: no catalogue database; run `just ingest` first")
-    con = duckdb.connect()
-    con.execute(f"ATTACH '{db_path}' AS catalogue (READ_ONLY)")
-    con.execute("USE catalogue")
+    con = duckdb.connect(str(db_path), read_only=True)
     if run_id is not None:
         run_db = Path("runs") / run_id / "run.duckdb"
         if not run_db.is_file():
             raise PipelineError(f"{run_db}: no run database; run `just run` first")
-        con.execute(f"ATTACH '{run_db}' AS run (READ_ONLY)")
+        con.execute(f"ATTACH {_quote(str(run_db))} AS run (READ_ONLY)")
         con.execute("USE run")
     return con
+
+
+def _quote(text: str) -> str:
+    """A SQL string literal."""
+    return "'" + text.replace("'", "''") + "'"
 
 
 def run_query(query: str, db_path: Path, run_id: str | None, max_rows: int) -> None:

@@ -104,8 +104,9 @@ class RunStore:
         atomic_write_text(path, json.dumps(to_dict(cfg), indent=2) + "\n")
         return path
 
-    def begin(self, stage: str, key: str, inputs: dict[str, Any]) -> StageTransaction:
-        return StageTransaction(self, stage, key, inputs)
+    def begin(self, stage: str, key: str, inputs: dict[str, Any], force: bool = False
+              ) -> StageTransaction:
+        return StageTransaction(self, stage, key, inputs, force)
 
     def _commit_entry(self, stage: str, entry: dict[str, Any]) -> None:
         manifest = self.manifest()
@@ -117,8 +118,10 @@ class RunStore:
 class StageTransaction:
     """Collects a stage's outputs under temporary names; `commit` publishes them all at once."""
 
-    def __init__(self, store: RunStore, stage: str, key: str, inputs: dict[str, Any]):
+    def __init__(self, store: RunStore, stage: str, key: str, inputs: dict[str, Any],
+                 force: bool = False):
         self.store, self.stage, self.key, self.inputs = store, stage, key, inputs
+        self.force = force  # rebuild shared outputs (the catalogue) even when they look current
         self._files: dict[str, Path] = {}
         self._tables: dict[str, Any] = {}
         self.rows: dict[str, int] = {}

@@ -70,17 +70,26 @@ def polygon_edge_normals(vertices: np.ndarray) -> np.ndarray:
     v = np.asarray(vertices, dtype=float)
     if v.ndim != 2 or v.shape[0] < 3 or v.shape[1] != 3:
         raise ValueError(f"polygon needs (K>=3, 3) vertices, got shape {v.shape}")
-    v = v / np.linalg.norm(v, axis=1, keepdims=True)
+    lengths = np.linalg.norm(v, axis=1, keepdims=True)
+    if not np.all(np.isfinite(v)) or np.any(lengths == 0):
+        raise ValueError("polygon vertices must be finite and non-zero")
+    v = v / lengths
     normals = np.cross(v, np.roll(v, -1, axis=0))
     norms = np.linalg.norm(normals, axis=1, keepdims=True)
     if np.any(norms < 1e-15):
         raise ValueError("polygon has repeated or antipodal consecutive vertices")
     normals /= norms
-    centroid = v.sum(axis=0)
-    if normals[0] @ centroid < 0:
+    if normals[0] @ v.sum(axis=0) < 0:
         normals = -normals
-    if np.any(v @ normals.T < -1e-12):
+    # Every vertex but an edge's own two ends must lie on the inner side of that edge (the ends
+    # lie on it up to rounding, which grows as the edge gets shorter).
+    k = v.shape[0]
+    others = ~(np.eye(k, dtype=bool) | np.roll(np.eye(k, dtype=bool), 1, axis=0))
+    dots = np.where(others, v @ normals.T, np.nan)
+    if np.any(dots[others] < -1e-12):
         raise ValueError("polygon is not convex (or is larger than a hemisphere)")
+    if np.any(np.nanmax(dots, axis=0) <= 1e-14):
+        raise ValueError("polygon has no area (its vertices lie on one great circle)")
     return normals
 
 

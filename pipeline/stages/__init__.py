@@ -103,12 +103,12 @@ def execute(name: str, cfg: RunConfig, store: RunStore, force: bool = False) -> 
         console.print(f"[dim]{name}: up to date (key {key}), skipped[/dim]")
         return False
     inputs = check_upstream(name, cfg, store)
-    store.write_config(cfg)
-    tx = store.begin(name, key, inputs)
+    tx = store.begin(name, key, inputs, force=force)
     t0 = time.perf_counter()
     console.print(f"[bold]{name}[/bold]: running (run {store.run_id})")
     try:
         result = module(name).run(cfg, store, tx)
+        store.write_config(cfg)
         tx.commit(result.info)
     except BaseException:
         tx.abort()

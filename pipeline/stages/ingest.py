@@ -82,7 +82,7 @@ def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> Any:
 
     db_path = Path(cfg.catalogue.db_path)
     meta = cat.read_meta(db_path)
-    built = meta is None or meta.get("key") != tx.key
+    built = tx.force or meta is None or meta.get("key") != tx.key
     if built:
         meta = build(cfg, tx.key)
     con = duckdb.connect(str(db_path), read_only=True)

@@ -1,0 +1,60 @@
+"""Scoring: estimation errors, the attitude error's Euler angles, window statistics and NEES.
+
+Position errors are per MCI axis (m). The attitude error is the rotation R_true^T R_est (body frame,
+ERRATA 10), reported as 3-2-1 Euler angles (roll phi, pitch theta, yaw psi) and, for consistency
+tests, as a rotation vector (rad), the same right perturbation the estimators' covariances use.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def attitude_error_rotation(q_true: np.ndarray, q_est: np.ndarray) -> Rotation:
+    """The error rotation R_true^T R_est of scalar-last q_mci_from_body arrays (N, 4)."""
+    return Rotation.from_quat(q_true).inv() * Rotation.from_quat(q_est)
+
+
+def euler321_deg(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
+    """(N, 3) roll phi, pitch theta, yaw psi (deg) of R_true^T R_est, 3-2-1 (z-y'-x'')
+    sequence. Rows with a NaN estimate give NaN."""
+    out = np.full((q_est.shape[0], 3), np.nan)
+    ok = np.all(np.isfinite(q_est), axis=1)
+    if ok.any():
+        zyx = attitude_error_rotation(q_true[ok], q_est[ok]).as_euler("ZYX", degrees=True)
+        out[ok] = zyx[:, ::-1]
+    return out
+
+
+def rotation_vector_error(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
+    """(N, 3) rotation vector (rad, body frame) of R_true^T R_est; NaN rows stay NaN."""
+    out = np.full((q_est.shape[0], 3), np.nan)
+    ok = np.all(np.isfinite(q_est), axis=1)
+    if ok.any():
+        out[ok] = attitude_error_rotation(q_true[ok], q_est[ok]).as_rotvec()
+    return out
+
+
+def nees(error: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Normalised estimation error squared e^T P^-1 e per row: error (N, k), cov (N, k, k).
+    NaN where the error or covariance is not finite or the covariance is singular."""
+    out = np.full(error.shape[0], np.nan)
+    ok = np.all(np.isfinite(error), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
+    if ok.any():
+        sol = np.linalg.solve(cov[ok], error[ok][..., None])[..., 0]
+        out[ok] = np.einsum("ij,ij->i", error[ok], sol)
+    return out
+
+
+def window_stats(values: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-column statistics over the rows with finite values (rows: frames, cols: axes):
+    rmse, max_abs, p95_abs (NaN when no row is finite) and the count of finite rows."""
+    ok = np.all(np.isfinite(values), axis=1)
+    v = values[ok]
+    if v.shape[0] == 0:
+        nan = np.full(values.shape[1], np.nan)
+        return {"rmse": nan, "max_abs": nan, "p95_abs": nan, "n": 0}
+    a = np.abs(v)
+    return {"rmse": np.sqrt(np.mean(v * v, axis=0)), "max_abs": a.max(axis=0),
+            "p95_abs": np.percentile(a, 95, axis=0), "n": int(v.shape[0])}

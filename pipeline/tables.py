@@ -1,0 +1,27 @@
+"""Column conventions of the stage tables: vectors as <prefix>_x<unit>, _y, _z columns and
+quaternions as <prefix>_x, _y, _z, _w (scalar-last), flat so that SQL reads them directly."""
+
+from __future__ import annotations
+
+import numpy as np
+import polars as pl
+
+
+def xyz_columns(prefix: str, unit: str, a: np.ndarray) -> dict[str, np.ndarray]:
+    """{<prefix>_x<unit>: a[:, 0], ...} for an (N, 3) array."""
+    return {f"{prefix}_{c}{unit}": a[:, i] for i, c in enumerate("xyz")}
+
+
+def xyz(table: pl.DataFrame, prefix: str, unit: str) -> np.ndarray:
+    """(N, 3) array of the columns <prefix>_x<unit>, _y<unit>, _z<unit>."""
+    return np.stack([table[f"{prefix}_{c}{unit}"].to_numpy() for c in "xyz"], axis=1)
+
+
+def quat_columns(prefix: str, q: np.ndarray) -> dict[str, np.ndarray]:
+    """{<prefix>_x: q[:, 0], ..., <prefix>_w: q[:, 3]} for (N, 4) scalar-last quaternions."""
+    return {f"{prefix}_{c}": q[:, i] for i, c in enumerate("xyzw")}
+
+
+def quats(table: pl.DataFrame, prefix: str) -> np.ndarray:
+    """(N, 4) scalar-last quaternions from the columns <prefix>_x, _y, _z, _w."""
+    return np.stack([table[f"{prefix}_{c}"].to_numpy() for c in "xyzw"], axis=1)
