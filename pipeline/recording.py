@@ -28,6 +28,7 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 
 from pipeline.constants import MOON_RADIUS_M
 
@@ -43,11 +44,12 @@ def recording_id(run_id: str) -> str:
 
 
 @contextmanager
-def recording(run_id: str, path: Path, blueprint=None) -> Iterator[rr.RecordingStream]:
-    """A recording stream saved to `path` (closed, footer written, on exit)."""
+def recording(run_id: str, path: Path) -> Iterator[rr.RecordingStream]:
+    """A recording stream saved to `path` with the run's layout (closed, footer written, on
+    exit)."""
     rec = rr.RecordingStream(APP_ID, recording_id=recording_id(run_id))
     rec.set_log_time_enabled(False)
-    rec.save(path, default_blueprint=blueprint)
+    rec.save(path, default_blueprint=blueprint())
     try:
         yield rec
     finally:
@@ -197,3 +199,138 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
         send_scalars(rec, f"/counts/{name}", frame, t_s, frames_table[column].to_numpy(), name)
     send_scalars(rec, "/detection/d_min_km", frame, t_s, frames_table["d_min_km"].to_numpy(),
                  "Eq. 9 threshold (km)")
+
+
+STATUS_CODES = {"ok": 0, "too_few_craters": 1, "not_converged": 2, "degenerate": 3}
+METHOD_COLORS = {"paper": (0, 170, 255), "joint": (40, 220, 120)}
+REJECTED_COLOR = (255, 30, 30)
+COVARIANCE_SCALE = 1000.0  # 3-sigma position ellipsoids are drawn this many times larger
+
+
+def _ellipsoid_axes(cov_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """3-sigma half-sizes (N, 3) and orientation quaternions (N, 4) of covariances (N, 3, 3)."""
+    from scipy.spatial.transform import Rotation
+
+    eigval, eigvec = np.linalg.eigh(cov_pos)
+    eigvec[:, :, 2] *= np.sign(np.linalg.det(eigvec))[:, None]  # a proper rotation
+    return 3.0 * np.sqrt(np.maximum(eigval, 0.0)), Rotation.from_matrix(eigvec).as_quat()
+
+
+def log_estimation(rec: rr.RecordingStream, estimates, detections, trajectory) -> None:
+    """Estimated poses beside the truth, their paths, 3-sigma position ellipsoids (scaled up by
+    COVARIANCE_SCALE), the craters rejected as outliers, and status/iterations/time series."""
+    import polars as pl
+
+    from pipeline.core import frames
+    from pipeline.tables import quats, xyz
+
+    theta_of = dict(zip(trajectory["frame"].to_list(), trajectory["theta_m_rad"].to_list(),
+                        strict=True))
+    for method in estimates["method"].unique(maintain_order=True).to_list():
+        m = estimates.filter(pl.col("method") == method)
+        frame, t_s = m["frame"].to_numpy(), m["t_s"].to_numpy()
+        ok = (m["status"] == "ok").to_numpy()
+        color = METHOD_COLORS.get(method, (255, 255, 255))
+        r, q = xyz(m, "r_mci", "_m")[ok], quats(m, "q_mci_from_body")[ok]
+        times_ok = time_columns(frame[ok], t_s[ok])
+        base = f"/world/estimate/{method}"
+        if ok.any():
+            rec.send_columns(base, indexes=times_ok,
+                             columns=rr.Transform3D.columns(translation=r, quaternion=q))
+            rec.log(f"/world/estimate_path/{method}",
+                    rr.LineStrips3D([r.astype(np.float32)], colors=[color]), static=True)
+            cov = m["cov"].to_numpy().reshape(-1, 6, 6)[ok, :3, :3]
+            half, q_axes = _ellipsoid_axes(cov)
+            rec.log(f"/world/estimate_cov/{method}", rr.Ellipsoids3D.from_fields(
+                colors=[color], labels=[f"{method} 3-sigma x{COVARIANCE_SCALE:g}"]), static=True)
+            rec.send_columns(f"/world/estimate_cov/{method}", indexes=times_ok,
+                             columns=rr.Ellipsoids3D.columns(
+                                 centers=r, half_sizes=half * COVARIANCE_SCALE, quaternions=q_axes))
+        rec.log(f"{base}/axes", rr.Arrows3D(vectors=np.eye(3) * BODY_AXIS_LENGTH_M * 0.8,
+                                            colors=[color] * 3), static=True)
+
+        rejected = (m.select("frame", "rejected_ids").explode("rejected_ids")
+                    .drop_nulls().rename({"rejected_ids": "matched_id"})
+                    .join(detections.filter(pl.col("used")).select(
+                        "frame", "matched_id", "c_mci_x_m", "c_mci_y_m", "c_mci_z_m", "diam_km"),
+                        on=["frame", "matched_id"], how="inner").sort("frame"))
+        if rejected.height:
+            rf = rejected["frame"].to_numpy()
+            c_mcmf = frames.mcmf_from_mci(xyz(rejected, "c_mci", "_m"),
+                                          np.array([theta_of[f] for f in rf]))
+            uniq, counts = np.unique(rf, return_counts=True)
+            t_rej = np.array([t_s[np.searchsorted(frame, f)] for f in uniq])
+            _points3d(rec, f"/world/moon/rejected/{method}", time_columns(uniq, t_rej), c_mcmf,
+                      rejected["diam_km"].to_numpy() * 500.0 + 2e3, counts, REJECTED_COLOR)
+
+        codes = np.array([STATUS_CODES[s] for s in m["status"].to_list()], dtype=float)
+        send_scalars(rec, f"/estimation/{method}/status", frame, t_s, codes,
+                     f"{method} status (0 ok, 1 too few, 2 not converged, 3 degenerate)", color)
+        send_scalars(rec, f"/estimation/{method}/iterations", frame, t_s,
+                     m["iterations"].to_numpy(), f"{method} iterations", color)
+        send_scalars(rec, f"/estimation/{method}/solve_ms", frame, t_s, m["solve_ms"].to_numpy(),
+                     f"{method} solve time (ms)", color)
+        send_scalars(rec, f"/estimation/{method}/rejected", frame, t_s,
+                     m["n_rejected"].to_numpy(), f"{method} craters rejected", color)
+
+
+CRLB_COLOR = (200, 200, 200)
+QUANTITY_LABELS = {"x_m": "X (m)", "y_m": "Y (m)", "z_m": "Z (m)", "phi_deg": "phi (deg)",
+                   "theta_deg": "theta (deg)", "psi_deg": "psi (deg)"}
+
+
+def _quantity_entity(quantity: str) -> str:
+    kind = "position" if quantity.endswith("_m") else "attitude"
+    return f"/errors/{kind}/{quantity.split('_')[0]}"
+
+
+def log_scoring(rec: rr.RecordingStream, scores) -> None:
+    """Per quantity: each method's error, its own +-3-sigma bound and the +-3 sqrt(CRLB) band, on
+    the same timeline as the other stages; and each method's NEES."""
+    import polars as pl
+
+    first = True
+    for method in scores["method"].unique(maintain_order=True).to_list():
+        m = scores.filter(pl.col("method") == method)
+        frame, t_s = m["frame"].to_numpy(), m["t_s"].to_numpy()
+        color = METHOD_COLORS.get(method, (255, 255, 255))
+        dim = tuple(int(c * 0.55) for c in color)
+        for q, label in QUANTITY_LABELS.items():
+            base = _quantity_entity(q)
+            sigma3 = 3.0 * m[f"sigma_{q}"].to_numpy()
+            send_scalars(rec, f"{base}/{method}", frame, t_s, m[f"err_{q}"].to_numpy(),
+                         f"{method} error {label}", color)
+            send_scalars(rec, f"{base}/{method}_3sigma_upper", frame, t_s, sigma3,
+                         f"{method} +3 sigma", dim)
+            send_scalars(rec, f"{base}/{method}_3sigma_lower", frame, t_s, -sigma3,
+                         f"{method} -3 sigma", dim)
+            if first:  # the bound depends on the used craters, not on the method
+                crlb3 = 3.0 * m[f"crlb_{q}"].to_numpy()
+                send_scalars(rec, f"{base}/crlb_3sigma_upper", frame, t_s, crlb3,
+                             "+3 sqrt(CRLB)", CRLB_COLOR)
+                send_scalars(rec, f"{base}/crlb_3sigma_lower", frame, t_s, -crlb3,
+                             "-3 sqrt(CRLB)", CRLB_COLOR)
+        send_scalars(rec, f"/consistency/{method}/nees", frame, t_s, m["nees"].to_numpy(),
+                     f"{method} NEES (6 dof)", color)
+        first = False
+
+
+def blueprint() -> rrb.Blueprint:
+    """The run's layout: 3D view, camera view, error plots, counts and estimator status."""
+    error_views = [rrb.TimeSeriesView(origin=_quantity_entity(q), name=f"error {label}")
+                   for q, label in QUANTITY_LABELS.items()]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial3DView(origin="/world", name="3D: truth, estimates, craters (MCI)"),
+                rrb.Tabs(rrb.TimeSeriesView(origin="/counts", name="craters per frame"),
+                         rrb.TimeSeriesView(origin="/trajectory", name="altitude, speed"),
+                         rrb.TimeSeriesView(origin="/estimation", name="estimators"),
+                         rrb.TimeSeriesView(origin="/consistency", name="NEES")),
+                row_shares=[3, 1]),
+            rrb.Vertical(
+                rrb.Spatial2DView(origin="/world/spacecraft/camera", name="camera view"),
+                rrb.Tabs(*error_views),
+                row_shares=[1, 1]),
+            column_shares=[3, 2]),
+        collapse_panels=True)
