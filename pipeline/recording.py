@@ -249,11 +249,11 @@ def log_estimation(rec: rr.RecordingStream, estimates, detections, trajectory) -
         rec.log(f"{base}/axes", rr.Arrows3D(vectors=np.eye(3) * BODY_AXIS_LENGTH_M * 0.8,
                                             colors=[color] * 3), static=True)
 
-        rejected = (m.select("frame", "rejected_ids").explode("rejected_ids")
-                    .drop_nulls().rename({"rejected_ids": "matched_id"})
-                    .join(detections.filter(pl.col("used")).select(
-                        "frame", "matched_id", "c_mci_x_m", "c_mci_y_m", "c_mci_z_m", "diam_km"),
-                        on=["frame", "matched_id"], how="inner").sort("frame"))
+        rejected = (m.select("frame", "rejected_det_index").explode("rejected_det_index")
+                    .drop_nulls().rename({"rejected_det_index": "det_index"})
+                    .join(detections.select("frame", "det_index", "c_mci_x_m", "c_mci_y_m",
+                                            "c_mci_z_m", "diam_km"),
+                          on=["frame", "det_index"], how="inner").sort("frame"))
         if rejected.height:
             rf = rejected["frame"].to_numpy()
             c_mcmf = frames.mcmf_from_mci(xyz(rejected, "c_mci", "_m"),
@@ -334,3 +334,16 @@ def blueprint() -> rrb.Blueprint:
                 row_shares=[1, 1]),
             column_shares=[3, 2]),
         collapse_panels=True)
+
+
+def log_sweep(rec: rr.RecordingStream, scores) -> None:
+    """Position and attitude error norms per method and cap (one seed): Figs. 7-8 to scroll."""
+    for (method, cap), g in scores.group_by("method", "cap_label", maintain_order=True):
+        frame, t_s = g["frame"].to_numpy(), g["t_s"].to_numpy()
+        pos = np.sqrt(sum(g[f"err_{a}"].to_numpy() ** 2 for a in ("x_m", "y_m", "z_m")))
+        att = np.sqrt(sum(g[f"err_{a}"].to_numpy() ** 2
+                          for a in ("phi_deg", "theta_deg", "psi_deg")))
+        send_scalars(rec, f"/sweep/{method}/position_m/cap_{cap}", frame, t_s, pos,
+                     f"{method} |position error| (m), cap {cap}")
+        send_scalars(rec, f"/sweep/{method}/attitude_deg/cap_{cap}", frame, t_s, att,
+                     f"{method} |attitude error| (deg), cap {cap}")

@@ -198,6 +198,13 @@ Caps {facts['caps']}, methods {facts['methods']}, seeds {facts['seeds']}; RMSE p
 seeds' frames in {facts['window']}. `ours / paper` divides by the paper's Table 1; `/ CRLB` divides
 by the root of the mean Cramér-Rao bound of the craters used.
 
+Attitude: phi, theta, psi are the 3-2-1 Euler angles of the error rotation R_true^T R_est, about
+body axes (the project's convention, ERRATA 10). The rows "MCI axes" take the same angles of
+R_est R_true^T, about MCI axes: in this window MCI X is close to the local vertical, so about MCI
+axes phi is mostly yaw and theta, psi are mostly roll and pitch. That reading reproduces the
+paper's pattern (phi smallest, theta = psi), which suggests the paper scored its attitude errors
+about inertial axes.
+
 {table_md}
 ## Position errors per cap (the paper's Figs. 7 and 8), seed {facts['seeds'][0]}
 

@@ -27,6 +27,19 @@ def euler321_deg(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
     return out
 
 
+def euler321_mci_deg(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
+    """(N, 3) 3-2-1 Euler angles (deg) of the error rotation about MCI axes, R_est R_true^T.
+    Not the project's convention (ERRATA 10) but, it appears, the paper's: it reproduces the
+    pattern of its Table 1 (phi smallest, theta = psi) near the ascending node, where MCI X is
+    the vertical. NaN rows stay NaN."""
+    out = np.full((q_est.shape[0], 3), np.nan)
+    ok = np.all(np.isfinite(q_est), axis=1)
+    if ok.any():
+        err = Rotation.from_quat(q_est[ok]) * Rotation.from_quat(q_true[ok]).inv()
+        out[ok] = err.as_euler("ZYX", degrees=True)[:, ::-1]
+    return out
+
+
 def rotation_vector_error(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
     """(N, 3) rotation vector (rad, body frame) of R_true^T R_est; NaN rows stay NaN."""
     out = np.full((q_est.shape[0], 3), np.nan)

@@ -1,5 +1,6 @@
 """Stage `detect`: per frame, the craters in view, visible, identified and used, with their
-measurements (paper Sec. 3.4-3.5). Writes detections.parquet (one row per visible crater per frame),
+measurements (paper Sec. 3.4-3.5). Writes detections.parquet (one row per visible crater per frame,
+keyed by (frame, det_index)),
 frames.parquet (per-frame counts and footprint corners), both as tables of run.duckdb, and
 detection.rrd.
 """
@@ -64,8 +65,10 @@ def detect_all(model: DetectionModel, craters: Catalogue, trajectory: pl.DataFra
     u_true = cat("u_true_body").reshape(-1, 3)
     u_meas = cat("u_meas_body").reshape(-1, 3)
     pixel = cat("pixel_uv").reshape(-1, 2)
+    first_row = np.repeat(np.cumsum(counts) - counts, counts)
     detections = pl.DataFrame({
         "frame": np.repeat(frame, counts).astype(np.int32), "t_s": np.repeat(t_s, counts),
+        "det_index": (np.arange(counts.sum()) - first_row).astype(np.int32),
         "crater_id": craters.crater_id[row], "diam_km": craters.diam_km[row],
         "matched_id": craters.crater_id[matched], **xyz_columns("c_mci", "_m", c_mci),
         **xyz_columns("u_true_body", "", u_true), **xyz_columns("u_meas_body", "", u_meas),

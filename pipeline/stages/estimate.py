@@ -32,6 +32,7 @@ class UsedCraters:
     frame: np.ndarray  # (F,) every frame of the run
     t_s: np.ndarray  # (F,)
     start: np.ndarray  # (F + 1,) rows of frame i: start[i]:start[i + 1]
+    det_index: np.ndarray  # (N,) the detection's index within its frame
     matched_id: np.ndarray  # (N,) catalogue id each crater was identified as
     c_mci_m: np.ndarray  # (N, 3)
     u_body: np.ndarray  # (N, 3) measured bearings
@@ -46,8 +47,8 @@ class UsedCraters:
         frame = frames_table["frame"].to_numpy()
         start = np.searchsorted(d["frame"].to_numpy(), frame, side="left")
         return cls(frame, frames_table["t_s"].to_numpy(), np.r_[start, d.height],
-                   d["matched_id"].to_numpy(), xyz(d, "c_mci", "_m"), xyz(d, "u_meas_body", ""),
-                   d["rho_meas_m"].to_numpy())
+                   d["det_index"].to_numpy(), d["matched_id"].to_numpy(),
+                   xyz(d, "c_mci", "_m"), xyz(d, "u_meas_body", ""), d["rho_meas_m"].to_numpy())
 
 
 def key_parts(cfg: RunConfig) -> tuple[Any, ...]:
@@ -77,19 +78,26 @@ def estimate_all(cfg: RunConfig, craters: UsedCraters, seed: int, advance=None) 
             solve_ms = (time.perf_counter() - t0) * 1e3
             prior = est.r_mci_m if est.status == "ok" else None
             rows.append(_row(int(frame), float(craters.t_s[i]), method, est, solve_ms,
-                             craters.matched_id[a:b]))
+                             craters, a, b))
             if advance is not None:
                 advance()
     return _table(rows, d.max_craters)
 
 
 def _row(frame: int, t_s: float, method: str, est: PoseEstimate, solve_ms: float,
-         matched_id: np.ndarray) -> dict[str, Any]:
-    rejected = matched_id[~est.inliers] if est.status == "ok" else matched_id[:0]
+         craters: UsedCraters, a: int, b: int) -> dict[str, Any]:
+    """A table row; `rejected` are the craters a fit dropped as outliers (rows with non-finite
+    measurements, which no estimator can use, are not counted as outliers)."""
+    finite = (np.all(np.isfinite(craters.c_mci_m[a:b]), axis=1)
+              & np.all(np.isfinite(craters.u_body[a:b]), axis=1)
+              & np.isfinite(craters.rho_m[a:b]))
+    rejected = finite & ~est.inliers if est.status == "ok" else np.zeros(b - a, bool)
     return {"frame": frame, "t_s": t_s, "method": method, "status": est.status,
             "r": est.r_mci_m, "q": est.q_mci_from_body, "cov": est.cov,
-            "att_cov_quest": est.att_cov_quest, "n_used": int(matched_id.size),
-            "n_rejected": int(rejected.size), "rejected_ids": rejected.tolist(),
+            "att_cov_quest": est.att_cov_quest, "n_used": b - a,
+            "n_rejected": int(rejected.sum()),
+            "rejected_ids": craters.matched_id[a:b][rejected].tolist(),
+            "rejected_det_index": craters.det_index[a:b][rejected].tolist(),
             "iterations": est.iterations, "solve_ms": solve_ms}
 
 
@@ -113,6 +121,8 @@ def _table(rows: list[dict[str, Any]], cap: int | None) -> pl.DataFrame:
         "n_used": pl.Series([row["n_used"] for row in rows], dtype=pl.Int64),
         "n_rejected": pl.Series([row["n_rejected"] for row in rows], dtype=pl.Int64),
         "rejected_ids": pl.Series([row["rejected_ids"] for row in rows], dtype=pl.List(pl.Int64)),
+        "rejected_det_index": pl.Series([row["rejected_det_index"] for row in rows],
+                                        dtype=pl.List(pl.Int32)),
         "iterations": pl.Series([row["iterations"] for row in rows], dtype=pl.Int32),
         "solve_ms": [row["solve_ms"] for row in rows],
     })

@@ -27,6 +27,7 @@ from pipeline.tables import quats, xyz
 POSITION_AXES = ("x_m", "y_m", "z_m")
 ATTITUDE_AXES = ("phi_deg", "theta_deg", "psi_deg")
 QUANTITIES = POSITION_AXES + ATTITUDE_AXES
+ATTITUDE_MCI_AXES = ("phi_mci_deg", "theta_mci_deg", "psi_mci_deg")  # the paper's apparent axes
 
 
 def key_parts(cfg: RunConfig) -> tuple[Any, ...]:
@@ -87,7 +88,8 @@ def crlb_per_frame(trajectory: pl.DataFrame, used: pl.DataFrame, c_true_mci: np.
 
 def score_frames(trajectory: pl.DataFrame, estimates: pl.DataFrame, crlb: np.ndarray
                  ) -> pl.DataFrame:
-    """Per (method, frame): errors, 1-sigma of the method's covariance, CRLB sigmas and NEES."""
+    """Per (method, frame): errors, 1-sigma of the method's covariance, CRLB sigmas and NEES;
+    also the attitude error and its bound about MCI axes (the paper's apparent convention)."""
     truth_index = {f: i for i, f in enumerate(trajectory["frame"].to_list())}
     r_true_all = xyz(trajectory, "r_mci", "_m")
     q_true_all = quats(trajectory, "q_mci_from_body")
@@ -102,6 +104,10 @@ def score_frames(trajectory: pl.DataFrame, estimates: pl.DataFrame, crlb: np.nda
     sigma = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
     bound = crlb[idx]
     crlb_sigma = np.sqrt(np.diagonal(bound, axis1=1, axis2=2))
+    dcm_true = frames.dcm_from_q(q_true)
+    att_mci = dcm_true @ bound[:, 3:, 3:] @ np.swapaxes(dcm_true, 1, 2)
+    crlb_mci_sigma = np.sqrt(np.diagonal(att_mci, axis1=1, axis2=2))
+    euler_mci = metrics.euler321_mci_deg(q_true, q_est)
     deg = np.degrees(1.0)
     return pl.DataFrame({
         "method": estimates["method"], "cap": estimates["cap"], "frame": estimates["frame"],
@@ -112,6 +118,8 @@ def score_frames(trajectory: pl.DataFrame, estimates: pl.DataFrame, crlb: np.nda
         **{f"sigma_{a}": sigma[:, 3 + i] * deg for i, a in enumerate(ATTITUDE_AXES)},
         **{f"crlb_{a}": crlb_sigma[:, i] for i, a in enumerate(POSITION_AXES)},
         **{f"crlb_{a}": crlb_sigma[:, 3 + i] * deg for i, a in enumerate(ATTITUDE_AXES)},
+        **{f"err_{a}": euler_mci[:, i] for i, a in enumerate(ATTITUDE_MCI_AXES)},
+        **{f"crlb_{a}": crlb_mci_sigma[:, i] * deg for i, a in enumerate(ATTITUDE_MCI_AXES)},
         "nees": metrics.nees(err6, cov),
         "nees_position": metrics.nees(dr, cov[:, :3, :3]),
     })

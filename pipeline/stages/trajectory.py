@@ -17,6 +17,7 @@ from pipeline import recording
 from pipeline.config import RunConfig, TrajectoryConfig
 from pipeline.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
 from pipeline.core import frames, orbit
+from pipeline.errors import ConfigError
 from pipeline.store import RunStore, StageTransaction
 from pipeline.tables import quat_columns, quats, xyz, xyz_columns
 
@@ -54,6 +55,9 @@ def simulate(t: TrajectoryConfig) -> tuple[pl.DataFrame, dict[str, Any]]:
         r0, v0, q0, specific_force_body_m_s2=t.specific_force_body_m_s2, jitter=jitter,
         rtol=t.rtol, atol_m=t.atol_m)
     frame, t_s = frame_times(t, descent.t_impact_s)
+    if frame.size == 0:
+        raise ConfigError(f"trajectory.start_s = {t.start_s:g} s: no frame between start_s and "
+                          f"min(end_s, impact at {descent.t_impact_s:.3f} s)")
     r, v, q = descent.states(t_s)
     theta = frames.moon_rotation_angle_rad(t_s, MOON_ROTATION_RATE_RAD_S)
     r_mcmf = frames.mcmf_from_mci(r, theta)
@@ -70,7 +74,7 @@ def simulate(t: TrajectoryConfig) -> tuple[pl.DataFrame, dict[str, Any]]:
     facts = {
         "apoapsis_radius_m": ra, "periapsis_radius_m": rp, "periapsis_solved": t.periapsis_radius_km
         is None, "t_impact_s": descent.t_impact_s, "frames": int(frame.size),
-        "max_nadir_error_rad": float(nadir_err.max()) if frame.size else None,
+        "max_nadir_error_rad": float(nadir_err.max()),
     }
     return table, facts
 
