@@ -179,17 +179,29 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
     rec.send_columns("/world/footprint", indexes=times, columns=rr.LineStrips3D.columns(
         strips=[s.astype(np.float32) for s in outline]).partition(np.ones(frame.size, int)))
 
-    # Visible and used craters on the Moon (MCMF) and in the camera view (pixels).
-    theta = trajectory["theta_m_rad"].to_numpy()
+    # Visible craters where they are (MCMF), used ones where the catalogue match puts them (a false
+    # match is drawn at the wrong crater, in its own colour), and all in the camera view (pixels).
+    theta = np.repeat(trajectory["theta_m_rad"].to_numpy(), frames_table["n_visible"].to_numpy())
     n_visible = frames_table["n_visible"].to_numpy()
-    c_mcmf = frames.mcmf_from_mci(xyz(detections, "c_mci", "_m"), np.repeat(theta, n_visible))
+    sc_mci = np.repeat(r_mci, n_visible, axis=0)
+    u_true_mci = np.einsum("nij,nj->ni", np.repeat(dcm, n_visible, axis=0),
+                           xyz(detections, "u_true_body", ""))
+    seen_mcmf = frames.mcmf_from_mci(
+        sc_mci + u_true_mci * detections["rho_true_m"].to_numpy()[:, None], theta)
+    c_mcmf = frames.mcmf_from_mci(xyz(detections, "c_mci", "_m"), theta)
     radius_m = detections["diam_km"].to_numpy() * 500.0
     pixel = np.stack([detections["pixel_u"].to_numpy(), detections["pixel_v"].to_numpy()], 1)
     radius_px = radius_m / detections["rho_meas_m"].to_numpy() * model.k[0, 0]
     used = detections["used"].to_numpy()
     n_used = frames_table["n_used"].to_numpy()
-    _points3d(rec, "/world/moon/visible", times, c_mcmf, radius_m, n_visible, VISIBLE_COLOR)
+    false = used & detections["false_match"].to_numpy()
+    _points3d(rec, "/world/moon/visible", times, seen_mcmf, radius_m, n_visible, VISIBLE_COLOR)
     _points3d(rec, "/world/moon/used", times, c_mcmf[used], radius_m[used], n_used, USED_COLOR)
+    if false.any():
+        per_frame = np.bincount(np.repeat(np.arange(frame.size), n_visible), weights=false,
+                                minlength=frame.size).astype(int)
+        _points3d(rec, "/world/moon/false_matches", times, c_mcmf[false], radius_m[false],
+                  per_frame, FALSE_MATCH_COLOR)
     cam = "/world/spacecraft/camera"
     _points2d(rec, f"{cam}/visible", times, pixel, radius_px, n_visible, VISIBLE_COLOR)
     _points2d(rec, f"{cam}/used", times, pixel[used], radius_px[used], n_used, USED_COLOR)

@@ -97,7 +97,7 @@ def coverage_cap(r_m: np.ndarray, boresight: np.ndarray, fov: FieldOfView, radiu
     (the cone then meets the sphere in a circle); a bound otherwise."""
     r = np.linalg.norm(r_m)
     nadir = -r_m / r
-    tilt = np.arccos(np.clip(boresight @ nadir / np.linalg.norm(boresight), -1.0, 1.0))
+    tilt = np.arctan2(np.linalg.norm(np.cross(boresight, nadir)), boresight @ nadir)
     eta = tilt + fov.corner_half_angle_rad
     sin_incidence = r * np.sin(eta) / radius_m
     if eta >= np.pi / 2 or sin_incidence >= 1.0:

@@ -1,0 +1,268 @@
+"""`just bench`: the project's speed targets, measured, printed and saved to runs/bench/.
+
+Groups (run all, or pick with --only): ingest (1.3 M synthetic, LU1319381), query (200 km
+footprint, tiled vs brute force), detect (the default 3,000-frame scenario), estimators (per-frame
+time at 10, 100, 900 craters), run (cold and warm `run` as a user starts it), sweep. Stage-level
+groups work in a scratch copy of the project folder, so the user's catalogue and runs are untouched.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from pipeline.config import SCENARIO_DIR, load_config
+from pipeline.constants import MOON_RADIUS_M
+from pipeline.core import frames, tiling
+from pipeline.store import RunStore, now_iso
+
+SHARED_LU = Path(__file__).resolve().parents[2] / "shared" / "data" / "lu1319381_partial.parquet"
+OUT_DIR = Path("runs/bench")
+console = Console()
+
+Result = dict[str, Any]  # name, value, unit, target, ok, note
+
+
+def _result(name: str, value: float, unit: str, target: float | None = None,
+            note: str = "") -> Result:
+    ok = None if target is None else bool(value <= target)
+    return {"name": name, "value": value, "unit": unit, "target": target, "ok": ok, "note": note}
+
+
+def _median_ms(fn: Callable[[], Any], repeat: int) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times) * 1e3)
+
+
+class Scratch:
+    """A scratch project folder (scenarios copied in) where stages run as `python -m pipeline`."""
+
+    def __init__(self) -> None:
+        self.dir = Path(tempfile.mkdtemp(prefix="crater-nav-bench-"))
+        shutil.copytree(SCENARIO_DIR, self.dir / SCENARIO_DIR)
+
+    def cli(self, *args: str) -> float:
+        """Wall time (s) of `python -m pipeline <args>` run in the scratch folder."""
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=self.dir, check=True,
+                       stdout=subprocess.DEVNULL)
+        return time.perf_counter() - t0
+
+    def close(self) -> None:
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def bench_ingest(scratch: Scratch) -> list[Result]:
+    out = [_result("ingest: 1.3 M synthetic craters (generate, tile, DuckDB, ingest.rrd)",
+                   scratch.cli("ingest", "--run-id", "bench-synthetic"), "s", 15.0)]
+    if SHARED_LU.is_file():
+        t = scratch.cli("ingest", "--run-id", "bench-lu", "--source", str(SHARED_LU),
+                        "--db", "catalogue/lu.duckdb")
+        out.append(_result("ingest: LU1319381 (1,319,381 rows)", t, "s", 15.0))
+    else:
+        out.append(_result("ingest: LU1319381", float("nan"), "s", 15.0,
+                           f"skipped: {SHARED_LU} absent"))
+    return out
+
+
+def _square_footprint(rng: np.random.Generator, side_m: float) -> np.ndarray:
+    """A square footprint (4, 3) of `side_m` at a random place and orientation."""
+    c = rng.normal(size=3)
+    c /= np.linalg.norm(c)
+    e1 = np.cross(c, rng.normal(size=3))
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(c, e1)
+    h = side_m / 2 / MOON_RADIUS_M
+    v = np.array([c + h * (a * e1 + b * e2) for a, b in ((1, 1), (-1, 1), (-1, -1), (1, -1))])
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def bench_query(scratch: Scratch) -> list[Result]:
+    from pipeline.core.synthetic import generate_catalogue
+
+    cfg = load_config("default").catalogue
+    lat, lon, _ = generate_catalogue(np.random.default_rng(cfg.seed), cfg.synthetic_min_diam_km,
+                                     cfg.synthetic_max_diam_km)
+    unit = frames.unit_mcmf_from_latlon(lat, lon)
+    tiles = tiling.tile_of(unit, cfg.healpix_order)
+    order = np.argsort(tiles, kind="stable")
+    index = tiling.TileIndex.build(unit[order], tiles[order], cfg.healpix_order)
+    rng = np.random.default_rng(1)
+    polys = [_square_footprint(rng, 200e3) for _ in range(400)]
+    it = iter(polys * 2)
+    tiled = _median_ms(lambda: tiling.query_polygon(index, next(it)), 400)
+    brute_polys = iter(polys)
+    brute = _median_ms(lambda: np.flatnonzero(tiling.in_polygon(
+        index.unit, tiling.polygon_edge_normals(next(brute_polys)))), 25)
+    caps = iter([(p.mean(axis=0), 100e3 * np.sqrt(2) / MOON_RADIUS_M) for p in polys])
+    cap = _median_ms(lambda: tiling.query_cap(index, *next(caps)), 400)
+    n = np.mean([tiling.query_polygon(index, p).size for p in polys[:50]])
+    return [
+        _result(f"query: 200 km footprint, 1.3 M craters, tiled (median; ~{n:.0f} craters)",
+                tiled, "ms", 2.0),
+        _result("query: 200 km footprint, brute force (median)", brute, "ms"),
+        _result("query: tiled speed-up over brute force", brute / tiled, "x", None,
+                "target >= 50"),
+        _result("query: cap around the footprint, tiled (median)", cap, "ms", 2.0),
+    ]
+
+
+def bench_detect(scratch: Scratch) -> list[Result]:
+    import polars as pl
+
+    from pipeline.catalogue import load_catalogue
+    from pipeline.stages import detect, run_pipeline
+
+    cwd = Path.cwd()
+    os.chdir(scratch.dir)
+    try:
+        cfg = load_config("default", "bench-detect")
+        store = RunStore(cfg.run_id)
+        run_pipeline(cfg, store, stages=("ingest", "trajectory"))
+        t0 = time.perf_counter()
+        run_pipeline(cfg, store, stages=("detect",), force=("detect",))
+        stage_s = time.perf_counter() - t0
+        trajectory = pl.read_parquet(store.path("trajectory.parquet"))
+        craters = load_catalogue(Path(cfg.catalogue.db_path))
+        stamps = [time.perf_counter()]
+        detect.detect_all(detect.model_of(cfg.detection), craters, trajectory, cfg.seed,
+                          lambda: stamps.append(time.perf_counter()))
+        per_frame = np.diff(stamps) * 1e3
+    finally:
+        os.chdir(cwd)
+    return [
+        _result("detect: whole stage, 3,000 frames, 1.3 M craters (tables, DuckDB, .rrd)",
+                stage_s, "s", 20.0),
+        _result("detect: per frame (median)", float(np.median(per_frame)), "ms"),
+        _result("detect: per frame (95th percentile)", float(np.percentile(per_frame, 95)), "ms"),
+    ]
+
+
+def _geometry(rng: np.random.Generator, n: int, sigma_b: float, sigma_r: float):
+    """A nadir view from 100 km: n craters in a 45-degree cone, noisy measurements, truth."""
+    from pipeline.core import measurement
+
+    r = np.array([MOON_RADIUS_M + 100e3, 0.0, 0.0])
+    v = np.array([0.0, 1600.0, 0.0])
+    dcm_mci_from_body = frames.dcm_mci_from_orbit(r, v)
+    ang = rng.uniform(0, np.radians(2.8), n)
+    az = rng.uniform(0, 2 * np.pi, n)
+    c = MOON_RADIUS_M * np.stack([np.cos(ang), np.sin(ang) * np.cos(az),
+                                  np.sin(ang) * np.sin(az)], 1)
+    u, rho = measurement.true_bearings(c, r, dcm_mci_from_body.T)
+    u_m, rho_m = measurement.measure(rng, u, rho, sigma_b, sigma_r)
+    return c, u_m, rho_m, r
+
+
+def bench_estimators(scratch: Scratch) -> list[Result]:
+    from pipeline.core.estimators import RobustOptions, estimate_pose
+
+    cfg = load_config("default")
+    d, e = cfg.detection, cfg.estimation
+    robust = RobustOptions(e.gate_probability, e.ransac_max_hypotheses, e.ransac_confidence)
+    out = []
+    targets = {("paper", 100): 0.3, ("joint", 100): 2.0}
+    for n in (10, 100, 900):
+        rng = np.random.default_rng(n)
+        problems = [_geometry(rng, n, d.sigma_bearing, d.sigma_range_m) for _ in range(200)]
+        for method in ("paper", "joint"):
+            for rob in (None, robust):
+                it = iter(problems)
+
+                def solve(method=method, rob=rob, it=it):
+                    c, u, rho, r = next(it)
+                    prior = r + np.array([0.0, 1600.0, 0.0])  # last frame's estimate, 1 s back
+                    estimate_pose(method, c, u, rho, sigma_bearing=d.sigma_bearing,
+                                  sigma_range_m=d.sigma_range_m, r_prior_mci_m=prior,
+                                  robust=rob, rng=np.random.default_rng(0))
+
+                label = f"estimate: {method}{' robust' if rob else ''}, {n} craters (median)"
+                out.append(_result(label, _median_ms(solve, 200), "ms",
+                                   targets.get((method, n)) if rob is None else None))
+    return out
+
+
+def bench_run(scratch: Scratch) -> list[Result]:
+    fresh = Scratch()  # no catalogue yet: a cold start
+    try:
+        cold = fresh.cli("run", "--run-id", "bench-cold")
+        warm = fresh.cli("run", "--run-id", "bench-warm")
+        rrd = sum(p.stat().st_size for p in (fresh.dir / "runs" / "bench-warm").glob("*.rrd"))
+        run_bytes = sum(p.stat().st_size for p in (fresh.dir / "runs" / "bench-warm").iterdir())
+    finally:
+        fresh.close()
+    return [
+        _result("run: cold (catalogue generated and ingested, every stage)", cold, "s", 60.0),
+        _result("run: warm (catalogue built; trajectory to score)", warm, "s", 30.0),
+        _result("run: recordings per run (*.rrd)", rrd / 2**20, "MiB"),
+        _result("run: run folder size", run_bytes / 2**20, "MiB"),
+    ]
+
+
+def bench_sweep(scratch: Scratch) -> list[Result]:
+    cfg = load_config("default")
+    s = cfg.sweep
+    t = scratch.cli("sweep", "--run-id", "bench-sweep")
+    return [_result(f"sweep: {len(s.caps)} caps x {len(s.methods)} methods x {len(s.seeds)} "
+                    f"seeds, {s.workers} workers", t, "s", 300.0)]
+
+
+GROUPS: dict[str, Callable[[Scratch], list[Result]]] = {
+    "ingest": bench_ingest, "query": bench_query, "detect": bench_detect,
+    "estimators": bench_estimators, "run": bench_run, "sweep": bench_sweep,
+}
+
+
+def run_benchmarks(only: list[str]) -> None:
+    unknown = sorted(set(only) - set(GROUPS))
+    if unknown:
+        from pipeline.errors import PipelineError
+
+        raise PipelineError(f"unknown benchmark group(s) {unknown}; groups: {list(GROUPS)}")
+    groups = only or list(GROUPS)
+    scratch = Scratch()
+    results: list[Result] = []
+    try:
+        for g in groups:
+            console.print(f"[bold]bench {g}[/bold] ...")
+            results.extend(GROUPS[g](scratch))
+    finally:
+        scratch.close()
+    table = Table("benchmark", "value", "target", "")
+    for r in results:
+        target = "" if r["target"] is None else f"<= {r['target']:g} {r['unit']}"
+        verdict = {True: "[green]ok[/green]", False: "[red]MISSED[/red]", None: ""}[r["ok"]]
+        table.add_row(r["name"], f"{r['value']:.4g} {r['unit']}", target or r["note"], verdict)
+    console.print(table)
+    OUT_DIR.mkdir(parents=True, exist_ok=True)
+    meta = {"when": now_iso(), "python": platform.python_version(), "cpus": os.cpu_count(),
+            "machine": platform.machine(), "groups": groups}
+    stem = "bench" if not only else "bench-" + "-".join(groups)
+    (OUT_DIR / f"{stem}.json").write_text(json.dumps({"meta": meta, "results": results},
+                                                     indent=2) + "\n")
+    lines = ["| benchmark | value | target | verdict |", "|---|---|---|---|"]
+    for r in results:
+        target = "" if r["target"] is None else f"<= {r['target']:g} {r['unit']}"
+        verdict = {True: "ok", False: "MISSED", None: ""}[r["ok"]]
+        lines.append(f"| {r['name']} | {r['value']:.4g} {r['unit']} | {target or r['note']} | "
+                     f"{verdict} |")
+    (OUT_DIR / f"{stem}.md").write_text(f"# Benchmarks ({meta['when']}, {meta['cpus']} CPUs)\n\n"
+                                        + "\n".join(lines) + "\n")
+    console.print(f"saved {OUT_DIR / (stem + '.json')} and {OUT_DIR / (stem + '.md')}")
