@@ -3,15 +3,19 @@
 All stages of a run share the application id and a recording id derived from the run id, so
 `rerun runs/<id>/*.rrd` opens them as one recording. Entity tree (3D in MCI, metres):
 
-    /world                      MCI (Z up)
-    /world/moon                 Transform3D MCI-from-MCMF, Rz(theta_m(t))
-    /world/moon/surface         the Moon sphere (static)
-    /world/moon/craters         every catalogue crater (static, MCMF)
-    /world/moon/visible|used    craters seen / used per frame (MCMF)
-    /world/path                 the true trajectory
-    /world/spacecraft           true pose: Transform3D MCI-from-body (translation, q_mci_from_body)
-    /world/spacecraft/camera    Pinhole (camera = body frame, boresight +z), 2D crater points
-    /world/estimate/<method>    estimated pose, its path and covariance ellipsoid
+    /world                          MCI (Z up)
+    /world/moon                     Transform3D MCI-from-MCMF, Rz(theta_m(t))
+    /world/moon/surface, /craters   the Moon sphere and every catalogue crater (static, MCMF)
+    /world/moon/visible, /used      craters seen (where they are) and used (where their match is)
+    /world/moon/false_matches       used craters matched to a wrong catalogue crater
+    /world/moon/rejected/<method>   craters a robust estimator rejected
+    /world/path                     the true trajectory
+    /world/spacecraft               true pose: Transform3D MCI-from-body (q_mci_from_body)
+    /world/spacecraft/axes          body axes (x along track, y -orbit normal, z nadir)
+    /world/spacecraft/camera        Pinhole (camera = body frame), 2D crater points per frame
+    /world/frustum, /world/footprint  the four limit lines and the footprint outline
+    /world/estimate/<method>        estimated pose; /world/estimate_path, /estimate_cov likewise
+    /counts, /trajectory, /estimation, /errors, /consistency, /sweep   time series
 
 Time lines: `frame` (sequence) and `sim_time` (seconds since apoapsis). Scalars go through
 columnar `send_columns`. Positions are float32 in Rerun (~0.1 m at lunar radius): the stage
@@ -85,11 +89,17 @@ def log_moon(rec: rr.RecordingStream) -> None:
 
 
 def log_ingest(rec: rr.RecordingStream, r_mcmf_m: np.ndarray, diam_km: np.ndarray) -> None:
-    """The Moon and every crater as static points, radius = crater radius, colour by diameter."""
+    """The Moon and every crater as static points (radius half the crater's, so that large
+    craters do not bulge far off the surface), colour by diameter."""
     log_moon(rec)
     rec.log("/world/moon/craters",
-            rr.Points3D(r_mcmf_m.astype(np.float32), radii=(diam_km * 500.0).astype(np.float32),
+            rr.Points3D(r_mcmf_m.astype(np.float32), radii=_crater_point_radius_m(diam_km, 0.5),
                         colors=diameter_colors(diam_km)), static=True)
+
+
+def _crater_point_radius_m(diam_km: np.ndarray, scale: float) -> np.ndarray:
+    """Radius (m, float32) of a crater's point: `scale` times the crater radius."""
+    return (diam_km * 500.0 * scale).astype(np.float32)
 
 
 AXIS_COLORS = np.array([(230, 60, 60), (60, 200, 60), (70, 110, 240)], dtype=np.uint8)  # x, y, z
@@ -189,9 +199,10 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
     seen_mcmf = frames.mcmf_from_mci(
         sc_mci + u_true_mci * detections["rho_true_m"].to_numpy()[:, None], theta)
     c_mcmf = frames.mcmf_from_mci(xyz(detections, "c_mci", "_m"), theta)
-    radius_m = detections["diam_km"].to_numpy() * 500.0
+    radius_m = _crater_point_radius_m(detections["diam_km"].to_numpy(), 0.6) + 200.0
     pixel = np.stack([detections["pixel_u"].to_numpy(), detections["pixel_v"].to_numpy()], 1)
-    radius_px = radius_m / detections["rho_meas_m"].to_numpy() * model.k[0, 0]
+    radius_px = detections["diam_km"].to_numpy() * 500.0 / detections["rho_meas_m"].to_numpy() \
+        * model.k[0, 0]
     used = detections["used"].to_numpy()
     n_used = frames_table["n_used"].to_numpy()
     false = used & detections["false_match"].to_numpy()
@@ -273,7 +284,8 @@ def log_estimation(rec: rr.RecordingStream, estimates, detections, trajectory) -
             uniq, counts = np.unique(rf, return_counts=True)
             t_rej = np.array([t_s[np.searchsorted(frame, f)] for f in uniq])
             _points3d(rec, f"/world/moon/rejected/{method}", time_columns(uniq, t_rej), c_mcmf,
-                      rejected["diam_km"].to_numpy() * 500.0 + 2e3, counts, REJECTED_COLOR)
+                      _crater_point_radius_m(rejected["diam_km"].to_numpy(), 0.7) + 1e3, counts,
+                      REJECTED_COLOR)
 
         codes = np.array([STATUS_CODES[s] for s in m["status"].to_list()], dtype=float)
         send_scalars(rec, f"/estimation/{method}/status", frame, t_s, codes,
@@ -289,6 +301,9 @@ def log_estimation(rec: rr.RecordingStream, estimates, detections, trajectory) -
 CRLB_COLOR = (200, 200, 200)
 QUANTITY_LABELS = {"x_m": "X (m)", "y_m": "Y (m)", "z_m": "Z (m)", "phi_deg": "phi (deg)",
                    "theta_deg": "theta (deg)", "psi_deg": "psi (deg)"}
+
+
+ERROR_AXIS_RANGE = {"m": (-25.0, 25.0), "g": (-0.01, 0.01)}  # by unit: m, deg (initial zoom)
 
 
 def _quantity_entity(quantity: str) -> str:
@@ -329,12 +344,15 @@ def log_scoring(rec: rr.RecordingStream, scores) -> None:
 
 def blueprint() -> rrb.Blueprint:
     """The run's layout: 3D view, camera view, error plots, counts and estimator status."""
-    error_views = [rrb.TimeSeriesView(origin=_quantity_entity(q), name=f"error {label}")
+    error_views = [rrb.TimeSeriesView(origin=_quantity_entity(q), name=f"error {label}",
+                                      axis_y=rrb.ScalarAxis(range=ERROR_AXIS_RANGE[q[-1]]))
                    for q, label in QUANTITY_LABELS.items()]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.Spatial3DView(origin="/world", name="3D: truth, estimates, craters (MCI)"),
+                rrb.Spatial3DView(origin="/world", name="3D: truth, estimates, craters (MCI)",
+                                  eye_controls=rrb.EyeControls3D(
+                                      tracking_entity="/world/spacecraft")),
                 rrb.Tabs(rrb.TimeSeriesView(origin="/counts", name="craters per frame"),
                          rrb.TimeSeriesView(origin="/trajectory", name="altitude, speed"),
                          rrb.TimeSeriesView(origin="/estimation", name="estimators"),

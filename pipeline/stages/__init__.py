@@ -61,11 +61,11 @@ def module(name: str) -> ModuleType:
 
 def downstream_of(stage: str) -> list[str]:
     """`stage` and every stage that depends on it, in pipeline order."""
-    out = {stage}
+    found = {stage}
     for name in ORDER:
-        if any(u in out for u in UPSTREAM[name]):
-            out.add(name)
-    return [n for n in ORDER if n in out]
+        if any(u in found for u in UPSTREAM[name]):
+            found.add(name)
+    return [n for n in ORDER if n in found]
 
 
 def stage_key(name: str, cfg: RunConfig, _memo: dict[str, str] | None = None) -> str:

@@ -19,7 +19,7 @@ from pipeline.config import DetectionConfig, RunConfig
 from pipeline.constants import MOON_RADIUS_M
 from pipeline.core import camera, frames, identification
 from pipeline.core.detection import DetectionModel, detect_frame, frame_rngs
-from pipeline.stages import progress_bar
+from pipeline.stages import StageResult, progress_bar
 from pipeline.store import RunStore, StageTransaction
 from pipeline.tables import quats, xyz, xyz_columns
 
@@ -113,9 +113,7 @@ def reselect(detections: pl.DataFrame, cap: int | None, strategy: str, seed: int
     return used
 
 
-def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> Any:
-    from pipeline.stages import StageResult
-
+def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> StageResult:
     trajectory = pl.read_parquet(store.path("trajectory.parquet"))
     craters = load_catalogue(Path(cfg.catalogue.db_path))
     model = model_of(cfg.detection)

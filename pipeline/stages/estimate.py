@@ -18,7 +18,7 @@ import polars as pl
 from pipeline import recording
 from pipeline.config import RunConfig
 from pipeline.core.estimators import PoseEstimate, RobustOptions, estimate_pose
-from pipeline.stages import progress_bar
+from pipeline.stages import StageResult, progress_bar
 from pipeline.store import RunStore, StageTransaction
 from pipeline.tables import quat_columns, xyz, xyz_columns
 
@@ -128,9 +128,7 @@ def _table(rows: list[dict[str, Any]], cap: int | None) -> pl.DataFrame:
     })
 
 
-def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> Any:
-    from pipeline.stages import StageResult
-
+def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> StageResult:
     detections = pl.read_parquet(store.path("detections.parquet"))
     frames_table = pl.read_parquet(store.path("frames.parquet"))
     craters = UsedCraters.from_tables(detections, frames_table)

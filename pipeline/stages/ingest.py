@@ -17,6 +17,7 @@ import numpy as np
 from pipeline import catalogue as cat
 from pipeline import recording
 from pipeline.config import RunConfig
+from pipeline.stages import StageResult
 from pipeline.store import RunStore, StageTransaction, now_iso, sha256_file
 
 
@@ -77,9 +78,7 @@ def build(cfg: RunConfig, key: str) -> dict[str, Any]:
     return meta
 
 
-def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> Any:
-    from pipeline.stages import StageResult
-
+def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> StageResult:
     db_path = Path(cfg.catalogue.db_path)
     meta = cat.read_meta(db_path)
     built = tx.force or meta is None or meta.get("key") != tx.key

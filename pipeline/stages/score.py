@@ -20,7 +20,7 @@ import polars as pl
 from pipeline import recording, report
 from pipeline.config import RunConfig, ScoringConfig, Window
 from pipeline.core import estimators, frames, metrics
-from pipeline.stages import progress_bar
+from pipeline.stages import StageResult, progress_bar
 from pipeline.store import RunStore, StageTransaction
 from pipeline.tables import quats, xyz
 
@@ -152,9 +152,7 @@ def summarize(scores: pl.DataFrame, wins: tuple[Window, ...]) -> pl.DataFrame:
     return pl.DataFrame(rows)
 
 
-def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> Any:
-    from pipeline.stages import StageResult
-
+def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> StageResult:
     trajectory = pl.read_parquet(store.path("trajectory.parquet"))
     frames_table = pl.read_parquet(store.path("frames.parquet"))
     detections = pl.read_parquet(store.path("detections.parquet")).join(

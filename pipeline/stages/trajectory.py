@@ -18,6 +18,7 @@ from pipeline.config import RunConfig, TrajectoryConfig
 from pipeline.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
 from pipeline.core import frames, orbit
 from pipeline.errors import ConfigError
+from pipeline.stages import StageResult
 from pipeline.store import RunStore, StageTransaction
 from pipeline.tables import quat_columns, quats, xyz, xyz_columns
 
@@ -85,9 +86,7 @@ def nadir_pointing_error_rad(r: np.ndarray, v: np.ndarray, q: np.ndarray) -> np.
     return (orbit_frame.inv() * Rotation.from_quat(q)).magnitude()
 
 
-def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> Any:
-    from pipeline.stages import StageResult
-
+def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> StageResult:
     table, facts = simulate(cfg.trajectory)
     table.write_parquet(tx.output("trajectory.parquet"))
     tx.table("trajectory", table)
