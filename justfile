@@ -48,7 +48,7 @@ view run="default" *args:
 
 # the test suite (uses both cores)
 test *args:
-    python -m pytest -n 2 "$@"
+    python -m pytest -n 2 --dist loadscope "$@"
 
 # benchmarks: figures printed and saved to runs/bench/
 bench *args:

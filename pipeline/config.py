@@ -123,8 +123,10 @@ class DetectionConfig:
             _check(self.max_craters >= 1, "detection.max_craters", "must be >= 1 or \"none\"")
         _check(self.selection in SELECTIONS, "detection.selection", f"must be one of {SELECTIONS}")
         _check(0 <= self.false_match_share <= 1, "detection.false_match_share", "not in [0, 1]")
-        _check(self.sigma_bearing >= 0, "detection.sigma_bearing", "must be >= 0")
-        _check(self.sigma_range_m >= 0, "detection.sigma_range_m", "must be >= 0")
+        # The estimators weight measurements by 1 / sigma^2: noise-free measurements are not a
+        # case they (or the Cramér-Rao bound) can handle.
+        _check(self.sigma_bearing > 0, "detection.sigma_bearing", "must be > 0")
+        _check(self.sigma_range_m > 0, "detection.sigma_range_m", "must be > 0")
 
 
 @dataclass(frozen=True)
@@ -191,6 +193,9 @@ class SweepConfig:
         for m in self.methods:
             _check(m in METHODS, "sweep.methods", f"unknown method {m!r}")
         _check(all(s >= 0 for s in self.seeds), "sweep.seeds", "seeds must be >= 0")
+        _check(len(set(self.seeds)) == len(self.seeds), "sweep.seeds", "seeds must be distinct")
+        _check(len(set(self.caps)) == len(self.caps), "sweep.caps", "caps must be distinct")
+        _check(all(c is None or c >= 1 for c in self.caps), "sweep.caps", "caps must be >= 1")
         _check(self.workers >= 1, "sweep.workers", "must be >= 1")
 
 

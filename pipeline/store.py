@@ -67,7 +67,6 @@ class RunStore:
     def __init__(self, run_id: str, root: Path = RUNS_DIR):
         self.run_id = run_id
         self.run_dir = Path(root) / run_id
-        self.run_dir.mkdir(parents=True, exist_ok=True)
 
     @property
     def manifest_path(self) -> Path:
@@ -100,12 +99,14 @@ class RunStore:
 
     def write_config(self, cfg: RunConfig) -> Path:
         """Snapshot of the resolved config (what this run's stages ran with)."""
+        self.run_dir.mkdir(parents=True, exist_ok=True)
         path = self.path("config.json")
         atomic_write_text(path, json.dumps(to_dict(cfg), indent=2) + "\n")
         return path
 
     def begin(self, stage: str, key: str, inputs: dict[str, Any], force: bool = False
               ) -> StageTransaction:
+        self.run_dir.mkdir(parents=True, exist_ok=True)
         return StageTransaction(self, stage, key, inputs, force)
 
     def _commit_entry(self, stage: str, entry: dict[str, Any]) -> None:

@@ -23,6 +23,7 @@ import polars as pl
 from pipeline import recording, report
 from pipeline.catalogue import load_catalogue
 from pipeline.config import RunConfig, config_hash
+from pipeline.errors import ConfigError
 from pipeline.stages import console, detect, estimate, out, progress_bar, run_pipeline, score
 from pipeline.stages import stage_key as stage_key_of
 from pipeline.store import RunStore, code_version
@@ -126,7 +127,7 @@ def table1_markdown(t1: pl.DataFrame, cfg: RunConfig) -> str:
     used_line = "Mean craters used per frame in the window: " + ", ".join(
         f"cap {c}: {u:.0f}" for c, u in used.iter_rows()) + ".\n\n"
     out_md = used_line + block("The paper's Table 1", cfg.sweep.methods[0],
-                               lambda r: g(r["paper_rmse"]))
+                               lambda r: str(r["paper_rmse"]))
     for method in cfg.sweep.methods:
         out_md += block(f"`{method}`: RMSE (ours / paper)", method,
                         lambda r: f"{g(r['rmse'])} ({r['ratio_to_paper']:.2f})")
@@ -151,6 +152,11 @@ def run_sweep(cfg: RunConfig, sweep_id: str, workers: int | None = None) -> None
         console.print(f"[dim]sweep: up to date (key {key}), skipped[/dim]")
         out.print(f"sweep {sweep_id}: {store.path('table1.md')}, {store.path('report.md')}")
         return
+    window = next(w for w in cfg.scoring.windows if w.name == cfg.scoring.table_window)
+    t_s = pl.read_parquet(store.path("trajectory.parquet"), columns=["t_s"])["t_s"]
+    if not ((t_s >= window.start_s) & (t_s < window.end_s)).any():
+        raise ConfigError(f"sweep: no frame of the trajectory ({t_s.min():g}-{t_s.max():g} s) "
+                          f"falls in the table window {window.name!r} (scoring.table_window)")
     tx = store.begin("sweep", key, {"ingest": stage_key_of("ingest", cfg),
                                     "trajectory": stage_key_of("trajectory", cfg)})
     t0 = time.perf_counter()
@@ -201,8 +207,11 @@ def _write_outputs(tx, cfg: RunConfig, sweep_id: str, scores: pl.DataFrame, t1: 
     tx.table("table1", t1)
     first = scores.filter(pl.col("seed") == s.seeds[0])
     figures = {}
+    t_s = first["t_s"].to_numpy()
     for method in s.methods:
         for fig_no, (a, b) in (("7", (0.0, 1500.0)), ("8", (1800.0, 2400.0))):
+            if not ((t_s >= a) & (t_s < b)).any():  # the sweep's frames miss this figure
+                continue
             name = f"fig{fig_no}_{method}_caps_{a:.0f}-{b:.0f}s.png"
             report.fig_caps(first, method, a, b, tx.output(name),
                             f"Position errors per cap, {a:.0f}-{b:.0f} s ({method})")

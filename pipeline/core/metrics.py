@@ -54,9 +54,15 @@ def nees(error: np.ndarray, cov: np.ndarray) -> np.ndarray:
     NaN where the error or covariance is not finite or the covariance is singular."""
     out = np.full(error.shape[0], np.nan)
     ok = np.all(np.isfinite(error), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
-    if ok.any():
+    try:
         sol = np.linalg.solve(cov[ok], error[ok][..., None])[..., 0]
         out[ok] = np.einsum("ij,ij->i", error[ok], sol)
+    except np.linalg.LinAlgError:  # a singular covariance somewhere: solve row by row
+        for i in np.flatnonzero(ok):
+            try:
+                out[i] = error[i] @ np.linalg.solve(cov[i], error[i])
+            except np.linalg.LinAlgError:
+                pass
     return out
 
 

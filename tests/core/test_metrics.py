@@ -226,9 +226,6 @@ def test_nees_is_nan_for_non_finite_errors_or_covariances():
     np.testing.assert_allclose(got[[0, 3]], metrics.nees(e[[0, 3]], cov[[0, 3]]), rtol=0, atol=0)
 
 
-@pytest.mark.xfail(strict=True, reason="bug: metrics.nees (pipeline/core/metrics.py:58) calls "
-                   "np.linalg.solve on the whole batch, which raises LinAlgError for a singular "
-                   "covariance instead of giving NaN for that row (as documented)")
 def test_nees_is_nan_for_a_singular_covariance_and_finite_elsewhere():
     cov = np.stack([np.eye(3), np.diag([1.0, 1.0, 0.0]), np.zeros((3, 3))])
     got = metrics.nees(np.ones((3, 3)), cov)

@@ -426,8 +426,9 @@ def test_synthetic_ingest_stage_outputs(workdir):
     xyz = table.select("x_m", "y_m", "z_m").to_numpy()
     order_p, order_t = np.lexsort(points.T), np.lexsort(xyz.T)
     np.testing.assert_allclose(points[order_p], xyz[order_t], rtol=0, atol=R_M * 2.0**-24)
+    # points are drawn at half the crater radius (recording.log_ingest)
     radii = np.sort(np.array(df["/world/moon/craters:Points3D:radii"][0].to_list()))
-    np.testing.assert_allclose(radii, np.sort(table["diam_km"].to_numpy()) * 500.0, rtol=1e-6)
+    np.testing.assert_allclose(radii, np.sort(table["diam_km"].to_numpy()) * 250.0, rtol=1e-6)
     half_sizes = np.array(df["/world/moon/surface:Ellipsoids3D:half_sizes"][0].to_list())
     np.testing.assert_array_equal(half_sizes, [[R_M] * 3])
 

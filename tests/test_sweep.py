@@ -1,0 +1,310 @@
+"""The crater-cap sweep (the paper's Table 1, Figs. 7-8): a small sweep (caps 10 and none, both
+methods, seeds 1 and 2, 1,800-2,000 s every 10 s, a 3 km synthetic catalogue) on two workers.
+table1.csv is recomputed from sweep_scores.parquet and the paper; the sweep's scores are those of
+ordinary runs of the same config and seed (one detection pass per seed and `reselect` give exactly
+what the stage path gives with a cap); outputs, recording, cache and clean-up.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import duckdb
+import numpy as np
+import polars as pl
+import pytest
+import rerun as rr
+from conftest import REPO
+from polars.testing import assert_frame_equal
+
+from pipeline import recording, report, stages
+from pipeline.config import RunConfig, load_config
+from pipeline.store import RunStore
+from pipeline.sweep import run_sweep
+
+DEFAULT_TOML = str(REPO / "runs" / "scenarios" / "default.toml")
+PAPER = REPO.parent / "shared" / "paper" / "visual-pose-estimation-moon-landing.md"
+SWEEP_ID = "sw"
+CAPS = (10, None)
+SEEDS = (1, 2)
+METHODS = ("paper", "joint")
+N_FRAMES = 21  # 1,800 ... 2,000 s
+QUANTITIES = ("x_m", "y_m", "z_m", "phi_deg", "theta_deg", "psi_deg", "phi_mci_deg",
+              "theta_mci_deg", "psi_mci_deg")
+TABLE1_SCHEMA = {"method": pl.String, "cap": pl.String, "quantity": pl.String, "rmse": pl.Float64,
+                 "paper_rmse": pl.Float64, "ratio_to_paper": pl.Float64,
+                 "crlb_rms": pl.Float64, "ratio_to_crlb": pl.Float64, "frames": pl.Int64,
+                 "estimated": pl.Int64, "mean_used": pl.Float64}
+STAT_RTOL = 1e-12  # the same sums in another order: a few ulp
+
+
+def label(cap: int | None) -> str:
+    return "none" if cap is None else str(cap)
+
+
+def config(db: Path, run_id: str = SWEEP_ID, **sections) -> RunConfig:
+    overrides = {
+        "catalogue": {"synthetic_min_diam_km": 3.0, "db_path": str(db)},
+        "trajectory": {"start_s": 1800.0, "end_s": 2000.0, "frame_rate_hz": 0.1},
+        "sweep": {"caps": [10, "none"], "seeds": list(SEEDS), "workers": 2},
+    }
+    for name, values in sections.items():
+        overrides[name] = {**overrides.get(name, {}), **values} if isinstance(values, dict) \
+            else values
+    return load_config(DEFAULT_TOML, run_id, overrides)
+
+
+class Sweep:
+    """The module's sweep (under root/runs/sw) and ordinary runs of the same config on demand."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self.db = root / "catalogue" / "craters.duckdb"
+        self.cfg = config(self.db)
+        self.dir = root / "runs" / SWEEP_ID
+        self._runs: dict[tuple[int, int | None], Path] = {}
+
+    def read(self, name: str) -> pl.DataFrame:
+        return pl.read_parquet(self.dir / f"{name}.parquet")
+
+    def table1(self) -> pl.DataFrame:
+        return pl.read_csv(self.dir / "table1.csv", schema=TABLE1_SCHEMA)
+
+    def manifest(self) -> dict:
+        return json.loads((self.dir / "manifest.json").read_text())
+
+    def ordinary_run(self, seed: int, cap: int | None) -> Path:
+        """Every stage with detection.max_craters = cap and root seed = seed."""
+        if (seed, cap) not in self._runs:
+            run_id = f"seed{seed}-cap{label(cap)}"
+            cfg = config(self.db, run_id, seed=seed,
+                         detection={"max_craters": "none" if cap is None else cap})
+            store = RunStore(run_id, self.root / "runs")
+            stages.run_pipeline(cfg, store)
+            self._runs[seed, cap] = store.run_dir
+        return self._runs[seed, cap]
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory) -> Sweep:
+    root = tmp_path_factory.mktemp("sweep")
+    (root / "catalogue").mkdir()
+    s = Sweep(root)
+    mp = pytest.MonkeyPatch()
+    mp.chdir(root)
+    try:
+        run_sweep(s.cfg, SWEEP_ID, workers=2)
+    finally:
+        mp.undo()
+    return s
+
+
+# --- table1.csv -----------------------------------------------------------------------------------
+
+
+def test_table1_has_a_row_per_method_cap_and_quantity(sweep):
+    t1 = sweep.table1()
+    assert t1.height == len(METHODS) * len(CAPS) * len(QUANTITIES)
+    assert t1.select("method", "cap", "quantity").rows() == [
+        (m, label(c), q) for m in METHODS for c in CAPS for q in QUANTITIES]
+    con = duckdb.connect(str(sweep.dir / "run.duckdb"), read_only=True)
+    try:
+        assert_frame_equal(con.sql("SELECT * FROM table1").pl(), t1, check_dtypes=False,
+                           check_exact=False, rel_tol=1e-15)  # CSV round trip of floats
+        assert_frame_equal(con.sql("SELECT * FROM sweep_scores").pl(), sweep.read("sweep_scores"))
+    finally:
+        con.close()
+
+
+def paper_table1() -> dict[int | None, dict[str, float]]:
+    """Table 1 as printed in the paper (rows X, Y, Z, phi, theta, psi; caps 10 ... no limit)."""
+    if not PAPER.is_file():
+        pytest.skip(f"{PAPER} not present")
+    text = PAPER.read_text().split("Table 1.")[-1]
+    rows = re.findall(r"^\|[^|]*\| *(X|Y|Z|\$\\(?:phi|theta|psi)\$) *\|(.*)\|$", text, re.M)
+    names = {"X": "x_m", "Y": "y_m", "Z": "z_m", "$\\phi$": "phi_deg",
+             "$\\theta$": "theta_deg", "$\\psi$": "psi_deg"}
+    assert [names[r[0]] for r in rows] == ["x_m", "y_m", "z_m", "phi_deg", "theta_deg",
+                                           "psi_deg"]
+    values = {names[r[0]]: [float(v) for v in r[1].split("|")] for r in rows}
+    caps = (10, 20, 50, 100, 200, None)
+    return {cap: {q: values[q][i] for q in values} for i, cap in enumerate(caps)}
+
+
+def test_paper_values_are_the_papers_table1(sweep):
+    assert report.PAPER_TABLE1 == paper_table1()
+    t1 = sweep.table1()
+    for row in t1.iter_rows(named=True):
+        cap = None if row["cap"] == "none" else int(row["cap"])
+        # rows about MCI axes reuse the paper's phi, theta, psi
+        assert row["paper_rmse"] == report.PAPER_TABLE1[cap][row["quantity"].replace("_mci", "")]
+
+
+def test_rmse_is_pooled_over_seeds_in_the_table_window(sweep):
+    scores, t1 = sweep.read("sweep_scores"), sweep.table1()
+    assert sweep.cfg.scoring.table_window == "1800-2400 s"
+    inside = scores.filter((pl.col("t_s") >= 1800.0) & (pl.col("t_s") < 2400.0))
+    assert inside.height == scores.height == len(METHODS) * len(CAPS) * len(SEEDS) * N_FRAMES
+    for row in t1.iter_rows(named=True):
+        g = inside.filter(pl.col("method") == row["method"], pl.col("cap_label") == row["cap"])
+        ok = g.filter(pl.col("status") == "ok")
+        q = row["quantity"]
+        err, crlb = ok[f"err_{q}"].to_numpy(), ok[f"crlb_{q}"].to_numpy()
+        assert set(g["seed"]) == set(SEEDS) and g.height == len(SEEDS) * N_FRAMES
+        assert (row["frames"], row["estimated"]) == (g.height, ok.height)
+        assert ok.height > 0.9 * g.height
+        rmse, crlb_rms = np.sqrt(np.mean(err**2)), np.sqrt(np.mean(crlb**2))
+        np.testing.assert_allclose(row["rmse"], rmse, rtol=STAT_RTOL)
+        np.testing.assert_allclose(row["crlb_rms"], crlb_rms, rtol=STAT_RTOL)
+        np.testing.assert_allclose(row["ratio_to_paper"], rmse / row["paper_rmse"], rtol=STAT_RTOL)
+        np.testing.assert_allclose(row["ratio_to_crlb"], rmse / crlb_rms, rtol=STAT_RTOL)
+        np.testing.assert_allclose(row["mean_used"], g["n_used"].mean(), rtol=STAT_RTOL)
+
+
+def test_caps_bound_the_craters_used(sweep):
+    scores = sweep.read("sweep_scores")
+    capped = scores.filter(pl.col("cap_label") == "10")
+    assert (capped["cap"] == 10).all() and capped["n_used"].max() == 10
+    free = scores.filter(pl.col("cap_label") == "none")
+    assert free["cap"].is_null().all() and free["n_used"].min() > 10
+    t1 = sweep.table1().filter(pl.col("quantity") == "x_m")
+    used = dict(zip(t1["cap"], t1["mean_used"], strict=False))
+    assert used["10"] <= 10 < used["none"]
+
+
+# --- the same numbers as ordinary runs ------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("seed", "cap"), [(1, None), (2, None), (1, 10)])
+def test_sweep_scores_are_those_of_an_ordinary_run(sweep, seed, cap):
+    """A run with detection.max_craters = cap and seed = seed gives, frame for frame and method for
+    method, exactly the sweep's scores (same estimates, errors, bounds and NEES)."""
+    run_dir = sweep.ordinary_run(seed, cap)
+    ordinary = pl.read_parquet(run_dir / "scores.parquet")
+    swept = sweep.read("sweep_scores").filter(
+        (pl.col("seed") == seed) & (pl.col("cap_label") == label(cap))).drop("seed", "cap_label")
+    assert ordinary.height == len(METHODS) * N_FRAMES
+    assert_frame_equal(swept, ordinary, check_exact=True)
+    est = pl.read_parquet(run_dir / "estimates.parquet")
+    assert (est["n_used"] <= (cap or np.inf)).all()
+
+
+# --- outputs --------------------------------------------------------------------------------------
+
+
+def test_table1_markdown_sets_the_papers_table_beside_ours(sweep):
+    md = (sweep.dir / "table1.md").read_text()
+    t1 = sweep.table1()
+    assert md.startswith("# Table 1: RMSE over 1800-2400 s")
+    assert "| | 10 | none |" in md
+    assert "### The paper's Table 1" in md and "| X (m) | 4.923 | 0.6111 |" in md
+    assert "| psi, MCI axes (deg) | 0.0066 | 0.00076 |" in md
+    for method in METHODS:
+        assert f"### `{method}`: RMSE (ours / paper)" in md
+        assert f"### `{method}`: RMSE / sqrt(CRLB)" in md
+        for q, name in (("y_m", "Y (m)"), ("theta_deg", "theta (deg)")):
+            r = {c: t1.filter(pl.col("method") == method, pl.col("cap") == c,
+                              pl.col("quantity") == q).row(0, named=True) for c in ("10", "none")}
+            assert (f"| {name} | {r['10']['rmse']:.4g} ({r['10']['ratio_to_paper']:.2f}) | "
+                    f"{r['none']['rmse']:.4g} ({r['none']['ratio_to_paper']:.2f}) |") in md
+            assert (f"| {name} | {r['10']['ratio_to_crlb']:.3f} | "
+                    f"{r['none']['ratio_to_crlb']:.3f} |") in md
+
+
+def test_table1_markdown_quotes_the_papers_values_as_printed(sweep):
+    md = (sweep.dir / "table1.md").read_text()
+    block = md.split("### The paper's Table 1")[1].split("###")[0]
+    for q, name in (("x_m", "X (m)"), ("y_m", "Y (m)"), ("z_m", "Z (m)")):
+        cells = " | ".join(str(report.PAPER_TABLE1[cap][q]) for cap in CAPS)
+        assert f"| {name} | {cells} |" in block
+
+
+def test_report_and_figures_7_8(sweep):
+    """Fig. 8 (1,800-2,400 s) is drawn; Fig. 7 (0-1,500 s) is left out: no frame of this
+    sweep falls in its window."""
+    text = (sweep.dir / "report.md").read_text()
+    assert (sweep.dir / "table1.md").read_text().split("\n\n", 1)[1] in text
+    for method in METHODS:
+        fig = f"fig8_{method}_caps_1800-2400s.png"
+        assert f"]({fig})" in text
+        assert (sweep.dir / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert f"fig7_{method}" not in text
+        assert not (sweep.dir / f"fig7_{method}_caps_0-1500s.png").exists()
+
+
+def test_sweep_recording_holds_a_series_per_method_and_cap(sweep):
+    path = sweep.dir / "sweep.rrd"
+    [entry] = rr.chunk.RrdReader(path).recordings()
+    assert (entry.application_id, entry.recording_id) == (recording.APP_ID,
+                                                          recording.recording_id(SWEEP_ID))
+    chunks = rr.chunk.RrdReader(path).stream().collect()
+    first = sweep.read("sweep_scores").filter(pl.col("seed") == SEEDS[0])
+    for method in METHODS:
+        for cap in CAPS:
+            g = first.filter((pl.col("method") == method) & (pl.col("cap_label") == label(cap)))
+            norm = np.sqrt(sum(g[f"err_{a}"].to_numpy() ** 2 for a in ("x_m", "y_m", "z_m")))
+            entity = f"/sweep/{method}/position_m/cap_{label(cap)}"
+            df = chunks.reader(index="frame", contents=entity).to_polars()
+            np.testing.assert_array_equal(df["frame"].to_numpy(), g["frame"].to_numpy())
+            logged = np.array([cell[0] for cell in df[f"{entity}:Scalars:scalars"].to_list()])
+            np.testing.assert_allclose(logged, norm, rtol=STAT_RTOL)
+            attitude = f"/sweep/{method}/attitude_deg/cap_{label(cap)}"
+            assert chunks.reader(index="frame", contents=attitude).to_polars().height == N_FRAMES
+
+
+def test_manifest_outputs_and_no_leftovers(sweep):
+    manifest = sweep.manifest()
+    assert list(manifest["stages"]) == ["ingest", "trajectory", "sweep"]
+    entry = manifest["stages"]["sweep"]
+    assert entry["info"]["tasks"] == len(CAPS) * len(SEEDS) and entry["info"]["workers"] == 2
+    assert set(entry["inputs"]) == {"ingest", "trajectory"}
+    figures = {f"fig8_{m}_caps_1800-2400s.png" for m in METHODS}  # no frame in Fig. 7's window
+    assert set(entry["outputs"]) == {"table1.csv", "table1.md", "sweep_scores.parquet",
+                                     "report.md", "sweep.rrd", *figures}
+    assert set(entry["tables"]) == {"sweep_scores", "table1"}
+    names = {p.name for p in sweep.dir.iterdir()}
+    assert not [n for n in names if "-seed" in n or n.startswith(".tmp-")], names
+    assert not {"detections.parquet", "estimates.parquet"} & names  # no stage outputs per task
+
+
+# --- cache ----------------------------------------------------------------------------------------
+
+
+def stamps(run_dir: Path) -> dict:
+    """Manifest entries and the upstream outputs' inodes (a rewrite renames a new file in)."""
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    return {"stages": manifest["stages"],
+            "inodes": {n: (run_dir / n).stat().st_ino for n in ("trajectory.parquet",
+                                                                "ingest.rrd", "table1.csv")}}
+
+
+def test_a_second_sweep_is_skipped(sweep, monkeypatch, capsys):
+    before = stamps(sweep.dir)
+    monkeypatch.chdir(sweep.root)
+    run_sweep(sweep.cfg, SWEEP_ID, workers=2)
+    assert stamps(sweep.dir) == before
+    assert "up to date" in capsys.readouterr().err
+
+
+def test_a_changed_sweep_reruns_without_recomputing_upstream(sweep, tmp_path, monkeypatch):
+    """A copy of the sweep folder, swept again with seed 2 and cap 20 only: the sweep stage reruns,
+    ingest and trajectory (in the sweep's own manifest) do not."""
+    shutil.copytree(sweep.dir, tmp_path / "runs" / SWEEP_ID)
+    run_dir = tmp_path / "runs" / SWEEP_ID
+    before = stamps(run_dir)
+    monkeypatch.chdir(tmp_path)
+    cfg = config(sweep.db, sweep={"caps": [20], "seeds": [2]})
+    run_sweep(cfg, SWEEP_ID, workers=2)
+    after = stamps(run_dir)
+    for stage in ("ingest", "trajectory"):
+        assert after["stages"][stage] == before["stages"][stage]
+    assert after["inodes"]["trajectory.parquet"] == before["inodes"]["trajectory.parquet"]
+    assert after["inodes"]["ingest.rrd"] == before["inodes"]["ingest.rrd"]
+    assert after["stages"]["sweep"]["key"] != before["stages"]["sweep"]["key"]
+    t1 = pl.read_csv(run_dir / "table1.csv", schema=TABLE1_SCHEMA)
+    assert set(t1["cap"]) == {"20"} and t1.height == len(METHODS) * len(QUANTITIES)
+    assert set(pl.read_parquet(run_dir / "sweep_scores.parquet")["seed"]) == {2}
+    assert not list(run_dir.glob("*-seed*.parquet"))
