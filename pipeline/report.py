@@ -44,6 +44,14 @@ def _save(fig: Figure, path: Path) -> None:
     fig.savefig(path, dpi=110, format="png")
 
 
+def _finish_stack(fig: Figure, subplots, title: str, path: Path) -> None:
+    """Legend and title on the top panel of a stack over time, time axis at the bottom; save."""
+    subplots[0].legend(loc="upper right", ncol=3, fontsize=8)
+    subplots[0].set_title(title)
+    subplots[-1].set_xlabel("time since apoapsis (s)")
+    _save(fig, path)
+
+
 def fig_counts(frames_table: pl.DataFrame, path: Path, title: str) -> None:
     """Fig. 4: visible, identified and used craters per frame against time, with the altitude."""
     t = frames_table["t_s"].to_numpy()
@@ -90,10 +98,7 @@ def fig_errors(scores: pl.DataFrame, axes: tuple[tuple[str, str], ...], path: Pa
             ax.set_ylim(-1.3 * limit, 1.3 * limit)
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-    subplots[0].legend(loc="upper right", ncol=3, fontsize=8)
-    subplots[0].set_title(title)
-    subplots[-1].set_xlabel("time since apoapsis (s)")
-    _save(fig, path)
+    _finish_stack(fig, subplots, title, path)
 
 
 def _fmt(x: float) -> str:
@@ -227,7 +232,4 @@ def fig_caps(errors: pl.DataFrame, method: str, t0: float, t1: float, path: Path
                     label=f"cap {cap}")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-    subplots[0].legend(loc="upper right", ncol=3, fontsize=8)
-    subplots[0].set_title(title)
-    subplots[-1].set_xlabel("time since apoapsis (s)")
-    _save(fig, path)
+    _finish_stack(fig, subplots, title, path)

@@ -104,10 +104,10 @@ class RunStore:
         atomic_write_text(path, json.dumps(to_dict(cfg), indent=2) + "\n")
         return path
 
-    def begin(self, stage: str, key: str, inputs: dict[str, Any], force: bool = False
-              ) -> StageTransaction:
+    def begin(self, stage: str, key: str, inputs: dict[str, Any], config_hash: str | None = None,
+              force: bool = False) -> StageTransaction:
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        return StageTransaction(self, stage, key, inputs, force)
+        return StageTransaction(self, stage, key, inputs, config_hash, force)
 
     def _commit_entry(self, stage: str, entry: dict[str, Any]) -> None:
         manifest = self.manifest()
@@ -120,8 +120,9 @@ class StageTransaction:
     """Collects a stage's outputs under temporary names; `commit` publishes them all at once."""
 
     def __init__(self, store: RunStore, stage: str, key: str, inputs: dict[str, Any],
-                 force: bool = False):
+                 config_hash: str | None = None, force: bool = False):
         self.store, self.stage, self.key, self.inputs = store, stage, key, inputs
+        self.config_hash = config_hash  # of the stage's own config (the key adds upstream, code)
         self.force = force  # rebuild shared outputs (the catalogue) even when they look current
         self._files: dict[str, Path] = {}
         self._tables: dict[str, Any] = {}
@@ -160,6 +161,7 @@ class StageTransaction:
         outputs = {name: {"bytes": self.store.path(name).stat().st_size} for name in self._files}
         entry = {
             "key": self.key,
+            "config_hash": self.config_hash,
             "code_version": code_version(),
             "inputs": self.inputs,
             "outputs": outputs,

@@ -24,7 +24,7 @@ from pipeline import recording, report
 from pipeline.catalogue import load_catalogue
 from pipeline.config import RunConfig, config_hash
 from pipeline.errors import ConfigError
-from pipeline.stages import console, detect, estimate, out, progress_bar, run_pipeline, score
+from pipeline.stages import detect, estimate, out, progress_bar, run_pipeline, score
 from pipeline.stages import stage_key as stage_key_of
 from pipeline.store import RunStore, code_version
 
@@ -145,12 +145,12 @@ def run_sweep(cfg: RunConfig, sweep_id: str, workers: int | None = None) -> None
     store = RunStore(sweep_id)
     cfg = dataclasses.replace(cfg, run_id=sweep_id)
     run_pipeline(cfg, store, stages=("ingest", "trajectory"))
-    key = config_hash("sweep", cfg.detection, cfg.estimation, cfg.scoring, s,
-                      stage_key_of("trajectory", cfg), stage_key_of("ingest", cfg),
+    own_hash = config_hash("sweep", cfg.detection, cfg.estimation, cfg.scoring, s)
+    key = config_hash(own_hash, stage_key_of("trajectory", cfg), stage_key_of("ingest", cfg),
                       code_version())
     if store.is_fresh("sweep", key):
-        console.print(f"[dim]sweep: up to date (key {key}), skipped[/dim]")
-        out.print(f"sweep {sweep_id}: {store.path('table1.md')}, {store.path('report.md')}")
+        out.print(f"sweep: up to date (key {key}), skipped; see {store.path('table1.md')}, "
+                  f"{store.path('report.md')} (rerun {store.path('sweep.rrd')})")
         return
     window = next(w for w in cfg.scoring.windows if w.name == cfg.scoring.table_window)
     t_s = pl.read_parquet(store.path("trajectory.parquet"), columns=["t_s"])["t_s"]
@@ -158,7 +158,7 @@ def run_sweep(cfg: RunConfig, sweep_id: str, workers: int | None = None) -> None
         raise ConfigError(f"sweep: no frame of the trajectory ({t_s.min():g}-{t_s.max():g} s) "
                           f"falls in the table window {window.name!r} (scoring.table_window)")
     tx = store.begin("sweep", key, {"ingest": stage_key_of("ingest", cfg),
-                                    "trajectory": stage_key_of("trajectory", cfg)})
+                                    "trajectory": stage_key_of("trajectory", cfg)}, own_hash)
     t0 = time.perf_counter()
     try:
         tasks = [(seed, cap) for cap in s.caps for seed in s.seeds]

@@ -8,8 +8,13 @@ from pathlib import Path
 import pytest
 import rerun as rr
 
+from pipeline import stages
+from pipeline.config import RunConfig, load_config
+from pipeline.stages import ingest
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
+DEFAULT_TOML = str(REPO / "runs" / "scenarios" / "default.toml")
 
 rr.set_strict_mode(True)
 
@@ -29,3 +34,21 @@ def workdir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     (tmp_path / "catalogue").mkdir()
     monkeypatch.chdir(tmp_path)
     return tmp_path
+
+
+def small_config(run_id: str, db: Path, window: dict, **sections) -> RunConfig:
+    """The default scenario on the 5 km synthetic catalogue in `db` (~83,000 craters), with the
+    trajectory `window` (start_s, end_s, frame_rate_hz) and further config `sections`."""
+    overrides = {"catalogue": {"synthetic_min_diam_km": 5.0, "db_path": str(db)},
+                 "trajectory": {**window, **sections.pop("trajectory", {})}, **sections}
+    return load_config(DEFAULT_TOML, run_id, overrides)
+
+
+@pytest.fixture(scope="module")
+def catalogue_db(tmp_path_factory) -> Path:
+    """The 5 km synthetic catalogue, built once per module (and xdist worker); runs only read it:
+    the ingest stage finds its key current and does not rebuild it."""
+    db = tmp_path_factory.mktemp("catalogue") / "craters.duckdb"
+    cfg = small_config("build", db, {})
+    ingest.build(cfg, stages.stage_key("ingest", cfg))
+    return db

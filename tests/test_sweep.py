@@ -286,7 +286,7 @@ def test_a_second_sweep_is_skipped(sweep, monkeypatch, capsys):
     monkeypatch.chdir(sweep.root)
     run_sweep(sweep.cfg, SWEEP_ID, workers=2)
     assert stamps(sweep.dir) == before
-    assert "up to date" in capsys.readouterr().err
+    assert "sweep: up to date" in capsys.readouterr().out
 
 
 def test_a_changed_sweep_reruns_without_recomputing_upstream(sweep, tmp_path, monkeypatch):

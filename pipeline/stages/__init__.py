@@ -100,10 +100,14 @@ def execute(name: str, cfg: RunConfig, store: RunStore, force: bool = False) -> 
     """Run one stage unless it is fresh (or `force`); True when it ran."""
     key = stage_key(name, cfg)
     if not force and is_fresh(name, cfg, store, key):
-        console.print(f"[dim]{name}: up to date (key {key}), skipped[/dim]")
+        outputs = sorted(store.entry(name)["outputs"])
+        rrd = [o for o in outputs if o.endswith(".rrd")]
+        out.print(f"{name}: up to date (key {key}), skipped; its outputs in {store.run_dir}/: "
+                  f"{', '.join(outputs)}" + (f" (rerun {store.path(rrd[0])})" if rrd else ""))
         return False
     inputs = check_upstream(name, cfg, store)
-    tx = store.begin(name, key, inputs, force=force)
+    tx = store.begin(name, key, inputs, config_hash(name, *module(name).key_parts(cfg)),
+                     force=force)
     t0 = time.perf_counter()
     console.print(f"[bold]{name}[/bold]: running (run {store.run_id})")
     try:

@@ -17,19 +17,18 @@ import numpy as np
 import polars as pl
 import pytest
 import rerun as rr
-from conftest import REPO
+from conftest import small_config
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2, poisson
 
 from pipeline import recording, stages
-from pipeline.config import RunConfig, load_config
+from pipeline.config import RunConfig
 from pipeline.constants import MOON_RADIUS_M
 from pipeline.core import estimators
-from pipeline.stages import estimate, ingest
+from pipeline.stages import estimate
 from pipeline.store import RunStore
 from pipeline.tables import quats, xyz
 
-DEFAULT_TOML = str(REPO / "runs" / "scenarios" / "default.toml")
 WINDOW = {"start_s": 1900.0, "end_s": 2000.0, "frame_rate_hz": 1.0}
 N_FRAMES = 101
 METHODS = ("paper", "joint")
@@ -62,19 +61,7 @@ SAME_FIXED_POINT_RAD = 1e-13
 
 
 def config(run_id: str, db: Path, **sections) -> RunConfig:
-    overrides = {"catalogue": {"synthetic_min_diam_km": 5.0, "db_path": str(db)},
-                 "trajectory": {**WINDOW, **sections.pop("trajectory", {})}, **sections}
-    return load_config(DEFAULT_TOML, run_id, overrides)
-
-
-@pytest.fixture(scope="module")
-def catalogue_db(tmp_path_factory) -> Path:
-    """The 5 km synthetic catalogue, built once per module (and xdist worker); runs only read it:
-    the ingest stage finds its key current and does not rebuild it."""
-    db = tmp_path_factory.mktemp("catalogue") / "craters.duckdb"
-    cfg = config("build", db)
-    ingest.build(cfg, stages.stage_key("ingest", cfg))
-    return db
+    return small_config(run_id, db, WINDOW, **sections)
 
 
 def run(run_id: str, db: Path, root: Path = Path("runs"), **sections) -> RunStore:

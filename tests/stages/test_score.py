@@ -18,17 +18,16 @@ import numpy as np
 import polars as pl
 import pytest
 import rerun as rr
-from conftest import REPO
+from conftest import small_config
 from scipy.spatial.transform import Rotation
 
 from pipeline import recording, stages
-from pipeline.config import RunConfig, load_config
+from pipeline.config import RunConfig
 from pipeline.core import estimators
-from pipeline.stages import ingest, score
+from pipeline.stages import score
 from pipeline.store import RunStore
 from pipeline.tables import quats, xyz
 
-DEFAULT_TOML = str(REPO / "runs" / "scenarios" / "default.toml")
 WINDOW = {"start_s": 1400.0, "end_s": "none", "frame_rate_hz": 0.02}
 N_FRAMES = 32
 METHODS = ("paper", "joint")
@@ -65,18 +64,7 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 def config(run_id: str, db: Path, **sections) -> RunConfig:
-    overrides = {"catalogue": {"synthetic_min_diam_km": 5.0, "db_path": str(db)},
-                 "trajectory": {**WINDOW, **sections.pop("trajectory", {})}, **sections}
-    return load_config(DEFAULT_TOML, run_id, overrides)
-
-
-@pytest.fixture(scope="module")
-def catalogue_db(tmp_path_factory) -> Path:
-    """The 5 km synthetic catalogue, built once per module (and xdist worker)."""
-    db = tmp_path_factory.mktemp("catalogue") / "craters.duckdb"
-    cfg = config("build", db)
-    ingest.build(cfg, stages.stage_key("ingest", cfg))
-    return db
+    return small_config(run_id, db, WINDOW, **sections)
 
 
 class Run:
