@@ -217,13 +217,13 @@ about inertial axes.
 """)
 
 
-def fig_caps(errors: pl.DataFrame, method: str, t0: float, t1: float, path: Path, title: str
-             ) -> None:
-    """Figs. 7-8: position error norm per cap against time in [t0, t1) for one method."""
+def fig_caps(errors: pl.DataFrame, method: str, caps: list[str], t0: float, t1: float,
+             path: Path, title: str) -> None:
+    """Figs. 7-8: position errors per cap (drawn in the order given, the last on top) against
+    time in [t0, t1) for one method."""
     fig = Figure(figsize=(9, 7.5))
     subplots = fig.subplots(3, 1, sharex=True)
     m = errors.filter((pl.col("method") == method) & (pl.col("t_s") >= t0) & (pl.col("t_s") < t1))
-    caps = m["cap_label"].unique(maintain_order=True).to_list()
     colors = matplotlib.colormaps["viridis"](np.linspace(0, 0.9, len(caps)))
     for ax, (q, label) in zip(subplots, POSITION, strict=True):
         for cap, color in zip(caps, colors, strict=True):

@@ -213,7 +213,7 @@ def _write_outputs(tx, cfg: RunConfig, sweep_id: str, scores: pl.DataFrame, t1: 
             if not ((t_s >= a) & (t_s < b)).any():  # the sweep's frames miss this figure
                 continue
             name = f"fig{fig_no}_{method}_caps_{a:.0f}-{b:.0f}s.png"
-            report.fig_caps(first, method, a, b, tx.output(name),
+            report.fig_caps(first, method, [cap_label(c) for c in s.caps], a, b, tx.output(name),
                             f"Position errors per cap, {a:.0f}-{b:.0f} s ({method})")
             figures[name] = f"Fig. {fig_no}, {method}, {a:.0f}-{b:.0f} s"
     report.write_sweep_report(tx.output("report.md"), table_md, figures, {
