@@ -178,6 +178,11 @@ class ScoringConfig:
         _check(self.table_window in names, "scoring.table_window", f"not one of {names}")
         _check(self.final_window_s > 0, "scoring.final_window_s", "must be > 0")
 
+    @property
+    def table(self) -> Window:
+        """The window the sweep tabulates."""
+        return next(w for w in self.windows if w.name == self.table_window)
+
 
 @dataclass(frozen=True)
 class SweepConfig:

@@ -77,7 +77,7 @@ def _estimate_task(seed: int, cap: int | None) -> pl.DataFrame:
 def table1(scores: pl.DataFrame, cfg: RunConfig) -> pl.DataFrame:
     """Per method, cap and quantity: RMSE over the table window pooled over seeds, beside the
     paper's Table 1 and the CRLB."""
-    w = next(w for w in cfg.scoring.windows if w.name == cfg.scoring.table_window)
+    w = cfg.scoring.table
     inside = scores.filter((pl.col("t_s") >= w.start_s) & (pl.col("t_s") < w.end_s))
     rows = []
     for method in cfg.sweep.methods:
@@ -152,7 +152,7 @@ def run_sweep(cfg: RunConfig, sweep_id: str, workers: int | None = None) -> None
         out.print(f"sweep: up to date (key {key}), skipped; see {store.path('table1.md')}, "
                   f"{store.path('report.md')} (rerun {store.path('sweep.rrd')})")
         return
-    window = next(w for w in cfg.scoring.windows if w.name == cfg.scoring.table_window)
+    window = cfg.scoring.table
     t_s = pl.read_parquet(store.path("trajectory.parquet"), columns=["t_s"])["t_s"]
     if not ((t_s >= window.start_s) & (t_s < window.end_s)).any():
         raise ConfigError(f"sweep: no frame of the trajectory ({t_s.min():g}-{t_s.max():g} s) "
