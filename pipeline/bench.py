@@ -27,7 +27,7 @@ from rich.table import Table
 from pipeline.config import SCENARIO_DIR, load_config
 from pipeline.constants import MOON_RADIUS_M
 from pipeline.core import frames, tiling
-from pipeline.store import RunStore, now_iso
+from pipeline.io.store import RunStore, now_iso
 
 SHARED_LU = Path(__file__).resolve().parents[2] / "shared" / "data" / "lu1319381_partial.parquet"
 OUT_DIR = Path("runs/bench")
@@ -135,7 +135,7 @@ def bench_query(scratch: Scratch) -> list[Result]:
 def bench_detect(scratch: Scratch) -> list[Result]:
     import polars as pl
 
-    from pipeline.catalogue import load_catalogue
+    from pipeline.io.catalogue_db import load_catalogue
     from pipeline.stages import detect, run_pipeline
 
     cwd = Path.cwd()

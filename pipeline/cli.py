@@ -12,7 +12,7 @@ import typer
 
 from pipeline.config import load_config
 from pipeline.errors import PipelineError
-from pipeline.store import RunStore
+from pipeline.io.store import RunStore
 
 app = typer.Typer(help="Crater-based absolute navigation for lunar landers: a batch pipeline "
                        "(ingest -> trajectory -> detect -> estimate -> score).",
@@ -119,7 +119,7 @@ def sql(
     max_rows: Annotated[int, typer.Option(help="Rows to print.")] = 40,
 ) -> None:
     """Run read-only SQL over the crater catalogue (and a run's tables) and print a table."""
-    from pipeline.sqlshell import run_query
+    from pipeline.io.sqlshell import run_query
 
     run_query(query, Path(db), run, max_rows)
 

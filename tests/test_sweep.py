@@ -20,9 +20,10 @@ import rerun as rr
 from conftest import REPO
 from polars.testing import assert_frame_equal
 
-from pipeline import recording, report, stages
+from pipeline import stages
+from pipeline.viz import recording, report
 from pipeline.config import RunConfig, load_config
-from pipeline.store import RunStore
+from pipeline.io.store import RunStore
 from pipeline.sweep import run_sweep
 
 DEFAULT_TOML = str(REPO / "runs" / "scenarios" / "default.toml")

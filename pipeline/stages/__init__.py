@@ -27,7 +27,7 @@ from rich.progress import (
 
 from pipeline.config import RunConfig, config_hash
 from pipeline.errors import StageInputError
-from pipeline.store import RunStore, code_version
+from pipeline.io.store import RunStore, code_version
 
 console = Console(stderr=True, soft_wrap=True)  # status and progress
 out = Console(soft_wrap=True)  # what a command wrote where

@@ -20,7 +20,7 @@ from scipy import stats
 from typer.testing import CliRunner
 
 from pipeline.cli import app
-from pipeline.recording import APP_ID, recording_id
+from pipeline.viz.recording import APP_ID, recording_id
 
 # Two-sided 99.9 % bounds: the tests fail by chance about once in a thousand runs each.
 ALPHA = 1e-3

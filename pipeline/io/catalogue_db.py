@@ -24,7 +24,7 @@ from pipeline.constants import MOON_RADIUS_M
 from pipeline.core import frames, tiling
 from pipeline.core.synthetic import generate_catalogue
 from pipeline.errors import CatalogueError
-from pipeline.store import SOURCES_TOML
+from pipeline.io.store import SOURCES_TOML
 
 FIELDS = ("id", "lat", "lon", "diam")
 FIELD_UNITS = {"id": "identifier", "lat": "latitude, deg", "lon": "longitude, deg",

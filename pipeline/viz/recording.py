@@ -159,7 +159,7 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
     """Camera (Pinhole) with the synthetic view, frustum limit lines and footprint, visible and
     used craters per frame, and the counts."""
     from pipeline.core import camera, frames
-    from pipeline.tables import quats, xyz
+    from pipeline.io.tables import quats, xyz
 
     frame = frames_table["frame"].to_numpy()
     t_s = frames_table["t_s"].to_numpy()
@@ -245,7 +245,7 @@ def log_estimation(rec: rr.RecordingStream, estimates, detections, trajectory) -
     import polars as pl
 
     from pipeline.core import frames
-    from pipeline.tables import quats, xyz
+    from pipeline.io.tables import quats, xyz
 
     theta_of = dict(zip(trajectory["frame"].to_list(), trajectory["theta_m_rad"].to_list(),
                         strict=True))

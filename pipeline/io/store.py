@@ -24,8 +24,9 @@ import duckdb
 from pipeline.config import RunConfig, to_dict
 
 RUNS_DIR = Path("runs")
-PACKAGE_DIR = Path(__file__).resolve().parent
-SOURCES_TOML = PACKAGE_DIR.parent / "catalogue" / "sources.toml"
+from pipeline.io.workspace import PACKAGE_DIR, workspace
+
+SOURCES_TOML = workspace().sources_toml
 
 
 @cache

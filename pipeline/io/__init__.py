@@ -1,0 +1,1 @@
+"""Files and databases: workspace paths, run folders and atomic commits, the catalogue database, table column conventions, read-only SQL."""

@@ -1,0 +1,1 @@
+"""Studies: the published results a scenario is compared against (tables, figure windows, reference lines)."""

@@ -1,0 +1,1 @@
+"""Rerun recordings, the viewer layout and the Markdown/PNG reports."""
