@@ -20,13 +20,13 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from pipeline.viz import recording, report
-from pipeline.io.catalogue_db import load_catalogue
 from pipeline.config import RunConfig, config_hash
 from pipeline.errors import ConfigError
+from pipeline.io.catalogue_db import load_catalogue
+from pipeline.io.store import RunStore, code_version
 from pipeline.stages import detect, estimate, out, progress_bar, run_pipeline, score
 from pipeline.stages import stage_key as stage_key_of
-from pipeline.io.store import RunStore, code_version
+from pipeline.viz import recording, report
 
 _STATE: dict[str, Any] = {}  # per worker process: config, catalogue, trajectory, work folder
 

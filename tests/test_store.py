@@ -15,8 +15,8 @@ import pytest
 
 from pipeline import stages
 from pipeline.config import load_config
-from pipeline.stages import ORDER, UPSTREAM, downstream_of
 from pipeline.io.store import RunStore, atomic_write_text, code_version, sha256_file
+from pipeline.stages import ORDER, UPSTREAM, downstream_of
 
 SMALL = {"catalogue": {"synthetic_min_diam_km": 20.0}}  # ~7,000 synthetic craters
 

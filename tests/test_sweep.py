@@ -21,10 +21,10 @@ from conftest import REPO
 from polars.testing import assert_frame_equal
 
 from pipeline import stages
-from pipeline.viz import recording, report
 from pipeline.config import RunConfig, load_config
 from pipeline.io.store import RunStore
 from pipeline.sweep import run_sweep
+from pipeline.viz import recording, report
 
 DEFAULT_TOML = str(REPO / "runs" / "scenarios" / "default.toml")
 PAPER = REPO.parent / "shared" / "paper" / "visual-pose-estimation-moon-landing.md"

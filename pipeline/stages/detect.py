@@ -13,15 +13,15 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from pipeline.viz import recording
-from pipeline.io.catalogue_db import Catalogue, load_catalogue
 from pipeline.config import DetectionConfig, RunConfig
 from pipeline.constants import MOON_RADIUS_M
 from pipeline.core import camera, frames, identification
 from pipeline.core.detection import DetectionModel, detect_frame, frame_rngs
-from pipeline.stages import StageResult, progress_bar
+from pipeline.io.catalogue_db import Catalogue, load_catalogue
 from pipeline.io.store import RunStore, StageTransaction
 from pipeline.io.tables import quats, xyz, xyz_columns
+from pipeline.stages import StageResult, progress_bar
+from pipeline.viz import recording
 
 
 def key_parts(cfg: RunConfig) -> tuple[Any, ...]:

@@ -15,12 +15,12 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from pipeline.viz import recording
 from pipeline.config import RunConfig
 from pipeline.core.estimators import PoseEstimate, RobustOptions, estimate_pose
-from pipeline.stages import StageResult, progress_bar
 from pipeline.io.store import RunStore, StageTransaction
 from pipeline.io.tables import quat_columns, xyz, xyz_columns
+from pipeline.stages import StageResult, progress_bar
+from pipeline.viz import recording
 
 _STREAM_TAG = 0xE57  # separates the robust estimator's streams from other users of the seed
 

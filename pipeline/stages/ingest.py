@@ -14,11 +14,11 @@ from typing import Any
 import duckdb
 import numpy as np
 
-from pipeline.io import catalogue_db as cat
-from pipeline.viz import recording
 from pipeline.config import RunConfig
-from pipeline.stages import StageResult
+from pipeline.io import catalogue_db as cat
 from pipeline.io.store import RunStore, StageTransaction, now_iso, sha256_file
+from pipeline.stages import StageResult
+from pipeline.viz import recording
 
 
 def source_fingerprint(cfg: RunConfig) -> dict[str, Any]:

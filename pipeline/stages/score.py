@@ -17,12 +17,12 @@ import duckdb
 import numpy as np
 import polars as pl
 
-from pipeline.viz import recording, report
 from pipeline.config import RunConfig, ScoringConfig, Window
 from pipeline.core import estimators, frames, metrics
-from pipeline.stages import StageResult, progress_bar
 from pipeline.io.store import RunStore, StageTransaction
 from pipeline.io.tables import quats, xyz
+from pipeline.stages import StageResult, progress_bar
+from pipeline.viz import recording, report
 
 POSITION_AXES = ("x_m", "y_m", "z_m")
 ATTITUDE_AXES = ("phi_deg", "theta_deg", "psi_deg")

@@ -13,14 +13,14 @@ import numpy as np
 import polars as pl
 from scipy.spatial.transform import Rotation
 
-from pipeline.viz import recording
 from pipeline.config import RunConfig, TrajectoryConfig
 from pipeline.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
 from pipeline.core import frames, orbit
 from pipeline.errors import ConfigError
-from pipeline.stages import StageResult
 from pipeline.io.store import RunStore, StageTransaction
 from pipeline.io.tables import quat_columns, quats, xyz, xyz_columns
+from pipeline.stages import StageResult
+from pipeline.viz import recording
 
 
 def key_parts(cfg: RunConfig) -> tuple[Any, ...]:

@@ -22,11 +22,11 @@ from scipy import stats
 from scipy.spatial.transform import Rotation
 
 from pipeline import stages
-from pipeline.io.catalogue_db import load_catalogue
 from pipeline.config import load_config
 from pipeline.core import frames
-from pipeline.stages import detect
+from pipeline.io.catalogue_db import load_catalogue
 from pipeline.io.store import RunStore
+from pipeline.stages import detect
 
 R_M = 1_737_400.0
 ALPHA = 1e-4

@@ -22,13 +22,13 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2, poisson
 
 from pipeline import stages
-from pipeline.viz import recording
 from pipeline.config import RunConfig
 from pipeline.constants import MOON_RADIUS_M
 from pipeline.core import estimators
-from pipeline.stages import estimate
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
+from pipeline.stages import estimate
+from pipeline.viz import recording
 
 WINDOW = {"start_s": 1900.0, "end_s": 2000.0, "frame_rate_hz": 1.0}
 N_FRAMES = 101

@@ -23,13 +23,13 @@ from conftest import REPO, shared_file
 from typer.testing import CliRunner
 
 from pipeline import stages
-from pipeline.viz import recording
-from pipeline.io.catalogue_db import CatalogueError
 from pipeline.cli import app
 from pipeline.config import load_config, to_dict
 from pipeline.errors import PipelineError
-from pipeline.stages import ingest
+from pipeline.io.catalogue_db import CatalogueError
 from pipeline.io.store import RunStore
+from pipeline.stages import ingest
+from pipeline.viz import recording
 
 R_M = 1_737_400.0
 COLUMNS = ["crater_id", "source_id", "lat_deg", "lon_deg", "diam_km", "x_m", "y_m", "z_m", "tile",

@@ -22,12 +22,12 @@ from conftest import small_config
 from scipy.spatial.transform import Rotation
 
 from pipeline import stages
-from pipeline.viz import recording
 from pipeline.config import RunConfig
 from pipeline.core import estimators
-from pipeline.stages import score
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
+from pipeline.stages import score
+from pipeline.viz import recording
 
 WINDOW = {"start_s": 1400.0, "end_s": "none", "frame_rate_hz": 0.02}
 N_FRAMES = 32

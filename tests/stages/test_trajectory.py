@@ -13,12 +13,12 @@ import rerun as rr
 from scipy.spatial.transform import Rotation
 
 from pipeline import stages
-from pipeline.viz import recording
 from pipeline.config import load_config
 from pipeline.constants import MOON_GM_M3_S2, MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
 from pipeline.errors import PipelineError
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
+from pipeline.viz import recording
 
 MU, R_M = MOON_GM_M3_S2, MOON_RADIUS_M
 RA_M = R_M + 300e3  # default apoapsis altitude 300 km
