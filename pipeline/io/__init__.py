@@ -1,1 +1,2 @@
-"""Files and databases: workspace paths, run folders and atomic commits, the catalogue database, table column conventions, read-only SQL."""
+"""Files and databases: workspace paths, run folders and atomic commits, the catalogue
+database, table column conventions, read-only SQL."""

@@ -22,9 +22,9 @@ from typing import Any
 import duckdb
 
 from pipeline.config import RunConfig, to_dict
+from pipeline.io.workspace import PACKAGE_DIR, workspace
 
 RUNS_DIR = Path("runs")
-from pipeline.io.workspace import PACKAGE_DIR, workspace
 
 SOURCES_TOML = workspace().sources_toml
 

@@ -1,1 +1,2 @@
-"""Studies: the published results a scenario is compared against (tables, figure windows, reference lines)."""
+"""Studies: published results a scenario is compared against (tables, figure windows,
+reference lines)."""
