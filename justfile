@@ -57,3 +57,9 @@ bench *args:
 # lint
 lint:
     ruff check pipeline tests
+
+# lint, types (core, ops, engine) and the import contract: what CI and pre-commit run
+check:
+    ruff check pipeline tests
+    mypy
+    lint-imports

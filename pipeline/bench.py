@@ -24,13 +24,13 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from pipeline.config import SCENARIO_DIR, load_config
-from pipeline.constants import MOON_RADIUS_M
+from pipeline.config import load_config
 from pipeline.core import frames, tiling
+from pipeline.core.constants import MOON_RADIUS_M
 from pipeline.io.store import RunStore, now_iso
+from pipeline.io.workspace import workspace
 
-SHARED_LU = Path(__file__).resolve().parents[2] / "shared" / "data" / "lu1319381_partial.parquet"
-OUT_DIR = Path("runs/bench")
+SHARED_LU = workspace().root.parent / "shared" / "data" / "lu1319381_partial.parquet"
 console = Console()
 
 Result = dict[str, Any]  # name, value, unit, target, at_least, ok, note
@@ -64,13 +64,17 @@ class Scratch:
 
     def __init__(self) -> None:
         self.dir = Path(tempfile.mkdtemp(prefix="crater-nav-bench-"))
-        shutil.copytree(SCENARIO_DIR, self.dir / SCENARIO_DIR)
+        shutil.copytree(workspace().scenarios_dir, self.dir / "runs" / "scenarios")
+        shutil.copy(workspace().root / "pyproject.toml", self.dir / "pyproject.toml")
+        shutil.copytree(workspace().catalogue_dir, self.dir / "catalogue",
+                        ignore=shutil.ignore_patterns("*.duckdb", "*.rrd", "*.wal", ".tmp*"))
 
     def cli(self, *args: str) -> float:
         """Wall time (s) of `python -m pipeline <args>` run in the scratch folder."""
         t0 = time.perf_counter()
         subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=self.dir, check=True,
-                       stdout=subprocess.DEVNULL)
+                       stdout=subprocess.DEVNULL,
+                       env={**os.environ, "CRATER_NAV_ROOT": str(self.dir)})
         return time.perf_counter() - t0
 
     def close(self) -> None:
@@ -135,28 +139,21 @@ def bench_query(scratch: Scratch) -> list[Result]:
 def bench_detect(scratch: Scratch) -> list[Result]:
     import polars as pl
 
-    from pipeline.io.catalogue_db import load_catalogue
-    from pipeline.stages import detect, run_pipeline
+    from pipeline.ops.detect import detect_all, model_of
+    from pipeline.stages.detect import load_recorded_catalogue
 
-    cwd = Path.cwd()
-    os.chdir(scratch.dir)
-    try:
-        cfg = load_config("default", "bench-detect")
-        store = RunStore(cfg.run_id)
-        run_pipeline(cfg, store, stages=("ingest", "trajectory"))
-        t0 = time.perf_counter()
-        run_pipeline(cfg, store, stages=("detect",), force=("detect",))
-        stage_s = time.perf_counter() - t0
-        trajectory = pl.read_parquet(store.path("trajectory.parquet"))
-        craters = load_catalogue(Path(cfg.catalogue.db_path))
-        stamps = [time.perf_counter()]
-        detect.detect_all(detect.model_of(cfg.detection), craters, trajectory, cfg.seed,
-                          lambda: stamps.append(time.perf_counter()))
-        per_frame = np.diff(stamps) * 1e3
-    finally:
-        os.chdir(cwd)
+    scratch.cli("run", "--run-id", "bench-detect")  # catalogue and trajectory
+    stage_s = scratch.cli("detect", "--run-id", "bench-detect", "--force")
+    store = RunStore("bench-detect", scratch.dir / "runs")
+    cfg = load_config("default", "bench-detect")
+    trajectory = pl.read_parquet(store.path("trajectory.parquet"))
+    craters = load_recorded_catalogue(store.path("catalogue.json"))
+    stamps = [time.perf_counter()]
+    detect_all(model_of(cfg.detection), craters, trajectory, cfg.seed,
+               lambda: stamps.append(time.perf_counter()))
+    per_frame = np.diff(stamps) * 1e3
     return [
-        _result("detect: whole stage, 3,000 frames, 1.3 M craters (tables, DuckDB, .rrd)",
+        _result("detect: whole stage, 3,000 frames, 1.3 M craters (command, tables, .rrd)",
                 stage_s, "s", 20.0),
         _result("detect: per frame (median)", float(np.median(per_frame)), "ms"),
         _result("detect: per frame (95th percentile)", float(np.percentile(per_frame, 95)), "ms"),
@@ -212,8 +209,9 @@ def bench_run(scratch: Scratch) -> list[Result]:
     try:
         cold = fresh.cli("run", "--run-id", "bench-cold")
         warm = fresh.cli("run", "--run-id", "bench-warm")
-        rrd = sum(p.stat().st_size for p in (fresh.dir / "runs" / "bench-warm").glob("*.rrd"))
-        run_bytes = sum(p.stat().st_size for p in (fresh.dir / "runs" / "bench-warm").iterdir())
+        store = RunStore("bench-warm", fresh.dir / "runs")
+        rrd = sum(p.stat().st_size for p in store.recordings())
+        run_bytes = sum(p.stat().st_size for p in store.run_dir.rglob("*") if p.is_file())
     finally:
         fresh.close()
     return [
@@ -258,17 +256,18 @@ def run_benchmarks(only: list[str]) -> None:
         verdict = {True: "[green]ok[/green]", False: "[red]MISSED[/red]", None: ""}[r["ok"]]
         table.add_row(r["name"], f"{r['value']:.4g} {r['unit']}", _target_text(r), verdict)
     console.print(table)
-    OUT_DIR.mkdir(parents=True, exist_ok=True)
+    out_dir = workspace().runs_dir / "bench"
+    out_dir.mkdir(parents=True, exist_ok=True)
     meta = {"when": now_iso(), "python": platform.python_version(), "cpus": os.cpu_count(),
             "machine": platform.machine(), "groups": groups}
     stem = "bench" if not only else "bench-" + "-".join(groups)
-    (OUT_DIR / f"{stem}.json").write_text(json.dumps({"meta": meta, "results": results},
+    (out_dir / f"{stem}.json").write_text(json.dumps({"meta": meta, "results": results},
                                                      indent=2) + "\n")
     lines = ["| benchmark | value | target | verdict |", "|---|---|---|---|"]
     for r in results:
         verdict = {True: "ok", False: "MISSED", None: ""}[r["ok"]]
         lines.append(f"| {r['name']} | {r['value']:.4g} {r['unit']} | {_target_text(r)} | "
                      f"{verdict} |")
-    (OUT_DIR / f"{stem}.md").write_text(f"# Benchmarks ({meta['when']}, {meta['cpus']} CPUs)\n\n"
+    (out_dir / f"{stem}.md").write_text(f"# Benchmarks ({meta['when']}, {meta['cpus']} CPUs)\n\n"
                                         + "\n".join(lines) + "\n")
-    console.print(f"saved {OUT_DIR / (stem + '.json')} and {OUT_DIR / (stem + '.md')}")
+    console.print(f"saved {out_dir / (stem + '.json')} and {out_dir / (stem + '.md')}")

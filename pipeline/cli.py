@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import os
-import shutil
-import sys
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -25,12 +23,19 @@ RunId = Annotated[str | None, typer.Option("--run-id", help="Run folder under ru
 Force = Annotated[bool, typer.Option("--force", help="Rerun even when up to date.")]
 
 
+def _executor(workers: int = 1) -> Any:
+    from pipeline.engine.executor import Executor
+    from pipeline.engine.runners import runner_for
+    from pipeline.stages import DAG
+
+    return Executor(DAG, runner_for(workers))
+
+
 def _stage(name: str, scenario: str, run_id: str | None, force: bool,
            overrides: dict[str, Any] | None = None) -> None:
-    from pipeline.stages import execute
-
     cfg = load_config(scenario, run_id, overrides)
-    execute(name, cfg, RunStore(cfg.run_id), force=force)
+    ex = _executor()
+    ex.execute(ex.plan(cfg, [name], force=[name] if force else []), RunStore(cfg.run_id))
 
 
 @app.command()
@@ -84,15 +89,17 @@ def run(
         "--force", help="Rerun this stage and everything downstream (repeatable).")] = None,
 ) -> None:
     """Run every stage, skipping those that are up to date."""
-    from pipeline.stages import ORDER, run_pipeline
+    from pipeline.stages import RUN_TARGET
     from pipeline.stages.score import headline
 
-    for f in force or []:
-        if f not in ORDER:
-            raise PipelineError(f"--force {f!r}: not a stage; stages are {list(ORDER)}")
     cfg = load_config(scenario, run_id)
+    ex = _executor()
+    stages = ex.dag.upstream_closure([RUN_TARGET])
+    for f in force or []:
+        if f not in stages:
+            raise PipelineError(f"--force {f!r}: not a stage of `run`; stages are {stages}")
     store = RunStore(cfg.run_id)
-    run_pipeline(cfg, store, force=force or [])
+    ex.execute(ex.plan(cfg, stages, force=force or []), store)
     typer.echo(headline(cfg, store))
 
 
@@ -104,45 +111,67 @@ def sweep(
     workers: Annotated[int | None, typer.Option(help="Worker processes (default: config).")] = None,
 ) -> None:
     """The crater-cap sweep (the paper's Table 1): caps x methods x seeds."""
-    from pipeline.sweep import run_sweep
+    from pipeline.stages import SWEEP_TARGET
 
-    cfg = load_config(scenario, run_id)
-    run_sweep(cfg, run_id or f"sweep-{cfg.name}", workers)
+    cfg = load_config(scenario, run_id or f"sweep-{Path(scenario).stem}")
+    ex = _executor(workers or cfg.sweep.workers)
+    store = RunStore(cfg.run_id)
+    ex.execute(ex.plan(cfg, ex.dag.upstream_closure([SWEEP_TARGET])), store)
+    typer.echo(f"sweep {cfg.run_id}: Table 1 in {store.path('table1.md')}, report "
+               f"{store.path('sweep_report.md')}\nlook at it: just view {cfg.run_id}")
 
 
 @app.command()
 def sql(
-    query: Annotated[str, typer.Argument(help="SQL to run (read-only).")],
-    run: Annotated[str | None, typer.Option(help="Also attach runs/<RUN>/run.duckdb as `run` "
-                                                 "(and make it the default schema).")] = None,
-    db: Annotated[str, typer.Option(help="Catalogue database.")] = "catalogue/craters.duckdb",
-    max_rows: Annotated[int, typer.Option(help="Rows to print.")] = 40,
+    query: Annotated[str | None, typer.Argument(
+        help="SQL to run (read-only); without it, list the tables and their columns.")] = None,
+    run: Annotated[str | None, typer.Option(
+        help="Add runs/<RUN>'s tables (by name) and use the catalogue that run used.")] = None,
+    db: Annotated[str | None, typer.Option(
+        help="Catalogue database (default: the run's, else catalogue/craters.duckdb).")] = None,
+    format: Annotated[str, typer.Option("--format", help="table, csv or markdown.")] = "table",
+    max_rows: Annotated[int, typer.Option(
+        help="Rows of a table printed on a terminal (piped output is never cut).")] = 40,
+    timeout_s: Annotated[float, typer.Option(help="Stop the query after this long.")] = 60.0,
 ) -> None:
-    """Run read-only SQL over the crater catalogue (and a run's tables) and print a table."""
+    """Run read-only SQL over the crater catalogue (as `craters`) and a run's tables."""
     from pipeline.io.sqlshell import run_query
 
-    run_query(query, Path(db), run, max_rows)
+    try:
+        run_query(query, run=run, db=db, fmt=format, max_rows=max_rows, timeout_s=timeout_s)
+    except PipelineError as exc:  # one line, also when `app` runs without `main` (CliRunner)
+        typer.secho(f"error: {exc}", fg="red", err=True)
+        raise typer.Exit(1) from None
 
 
 @app.command()
 def view(
     run: Annotated[str, typer.Argument(help="Run id (a folder under runs/).")] = "default",
-    screenshot: Annotated[str | None, typer.Option(help="Render headless to this PNG instead.")]
-    = None,
+    screenshot: Annotated[str | None, typer.Option(
+        help="Render headless to this PNG instead (needs a Vulkan driver: Debian's "
+             "mesa-vulkan-drivers libvulkan1).")] = None,
+    frame: Annotated[int | None, typer.Option(
+        help="Frame shown in the screenshot (default: the middle of the run's frames).")] = None,
 ) -> None:
-    """Open a run's recordings in the Rerun viewer (one merged recording)."""
-    run_dir = Path("runs") / run
-    files = sorted(str(p) for p in run_dir.glob("*.rrd"))
+    """Open a run's recordings in the Rerun viewer (one recording, the catalogue's craters
+    attached), or render them headless to a PNG."""
+    from pipeline.viz import viewer
+
+    run_dir, files, catalogue = viewer.run_recordings(run)
     if not files:
         raise PipelineError(f"{run_dir}: no .rrd recordings; run `just run` first")
-    exe = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
-    args = [exe, *files]
     if screenshot:
-        args = [exe, "--headless", "--bind", "127.0.0.1", "--window-size", "1600x1000",
-                "--screenshot-to", screenshot, *files]
+        shot = viewer.screenshot(files, Path(screenshot), catalogue=catalogue, frame=frame)
+        typer.echo(f"wrote {screenshot}: frame {shot.frame} of {shot.frames[0]}-{shot.frames[1]} "
+                   f"(viewer up {shot.start_s:.1f} s, loaded {shot.load_s:.1f} s, shot "
+                   f"{shot.total_s:.1f} s)")
+        return
+    if not viewer.has_display():
+        raise PipelineError(f"no display ($DISPLAY, $WAYLAND_DISPLAY unset): use `just view {run} "
+                            "--screenshot out.png`")
+    args = [viewer.rerun_executable(), *viewer.viewer_args(files, catalogue)]
     typer.echo(" ".join(args))
-    os.execv(exe, args)
-
+    os.execv(args[0], args)
 
 @app.command()
 def bench(
@@ -155,9 +184,17 @@ def bench(
 
 
 def main() -> None:
-    """Console entry point: project errors print as one clear line and exit 1."""
+    """Console entry point: project errors, interrupts and I/O failures print as one clear line
+    and exit non-zero (never a traceback for a user's mistake or the machine's limits)."""
     try:
         app()
     except PipelineError as exc:
         typer.secho(f"error: {exc}", fg="red", err=True)
+        raise SystemExit(1) from None
+    except KeyboardInterrupt:
+        typer.secho("error: interrupted; nothing partial was committed", fg="red", err=True)
+        raise SystemExit(130) from None
+    except OSError as exc:
+        where = f"{exc.filename}: " if exc.filename else ""
+        typer.secho(f"error: {where}{exc.strerror or exc}", fg="red", err=True)
         raise SystemExit(1) from None

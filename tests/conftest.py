@@ -1,16 +1,21 @@
-"""Shared fixtures: a scratch working directory with the scenarios, and the shared real data."""
+"""Shared fixtures: a scratch workspace with the scenarios, a small catalogue, stage runners, and
+the shared real data."""
 
 from __future__ import annotations
 
 import shutil
+from collections.abc import Iterable
 from pathlib import Path
 
 import pytest
 import rerun as rr
 
-from pipeline import stages
 from pipeline.config import RunConfig, load_config
-from pipeline.stages import ingest
+from pipeline.engine.executor import Executor
+from pipeline.engine.runners import Runner
+from pipeline.io.store import RunStore
+from pipeline.io.workspace import workspace
+from pipeline.stages import DAG, ingest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -28,12 +33,16 @@ def shared_file(name: str) -> Path:
 
 
 @pytest.fixture
-def workdir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    """A scratch project folder (runs/scenarios copied in) that is the working directory."""
+def workdir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterable[Path]:
+    """A scratch project (runs/scenarios copied in, an empty catalogue/) that is the workspace
+    and the working directory."""
     shutil.copytree(REPO / "runs" / "scenarios", tmp_path / "runs" / "scenarios")
     (tmp_path / "catalogue").mkdir()
     monkeypatch.chdir(tmp_path)
-    return tmp_path
+    monkeypatch.setenv("CRATER_NAV_ROOT", str(tmp_path))
+    workspace.cache_clear()
+    yield tmp_path
+    workspace.cache_clear()
 
 
 def small_config(run_id: str, db: Path, window: dict, **sections) -> RunConfig:
@@ -44,11 +53,20 @@ def small_config(run_id: str, db: Path, window: dict, **sections) -> RunConfig:
     return load_config(DEFAULT_TOML, run_id, overrides)
 
 
+def run_stages(cfg: RunConfig, root: Path, stages: Iterable[str] | None = None,
+               force: Iterable[str] = (), runner: Runner | None = None) -> list[str]:
+    """Bring `stages` (default: those of `just run`) of `cfg` up to date in `root`/<run_id>;
+    returns the stages that ran."""
+    ex = Executor(DAG, runner)
+    names = ex.dag.upstream_closure(["score"]) if stages is None else list(stages)
+    return ex.execute(ex.plan(cfg, names, force=force), RunStore(cfg.run_id, root))
+
+
 @pytest.fixture(scope="module")
 def catalogue_db(tmp_path_factory) -> Path:
     """The 5 km synthetic catalogue, built once per module (and xdist worker); runs only read it:
     the ingest stage finds its key current and does not rebuild it."""
     db = tmp_path_factory.mktemp("catalogue") / "craters.duckdb"
     cfg = small_config("build", db, {})
-    ingest.build(cfg, stages.stage_key("ingest", cfg))
+    ingest.build(cfg, ingest.catalogue_key(cfg))
     return db

@@ -1,50 +1,59 @@
-"""The run store: `runs/<run_id>/` folders, the manifest, atomic writes and cache keys.
+"""The run store: `runs/<run_id>/`, one folder per stage output set, committed in one atomic step.
 
-A stage writes every output to a temporary name inside the run folder; `StageTransaction.commit`
-renames them into place, replaces the stage's DuckDB tables in `run.duckdb` in one transaction and
-writes the manifest entry last (the commit marker). A stage that fails leaves the previous outputs
-and manifest untouched. A stage is fresh (skipped) when its manifest entry has the same key and its
-outputs exist; the key hashes the stage's config, its upstream keys and the code version.
+Layout of a run folder:
+
+    runs/<run_id>/
+      <stage>  -> .stages/<stage>.<token>     a symlink: the stage's committed outputs
+      .stages/<stage>.<token>/                 the outputs and `stage.json` (the manifest entry)
+      manifest.json, run.duckdb, config.json   derived, rewritten after each commit
+      .lock                                    held by the one command working on the run
+
+A stage writes every output into a fresh folder `.stages/<stage>.<token>`; `StageTransaction.commit`
+writes `stage.json` there (key, inputs, outputs with sizes and sha256), then replaces the stage's
+symlink with `os.replace`: the one atomic step that publishes the whole set. A kill at any moment
+leaves either the old set or the new one; unreferenced folders are swept under the run's lock.
+`manifest.json` (all stages' entries), `config.json` and `run.duckdb` (views over the Parquet
+outputs, through the stage symlinks) are conveniences derived from the committed folders.
+
+A stage is fresh when its entry has the same key, its upstream stages are still the commits it read,
+and every output is there with the size (and, when its mtime changed, the sha256) it was committed
+with: a truncated or replaced output is never "up to date".
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import errno
+import fcntl
 import hashlib
 import json
 import os
+import re
+import secrets
 import shutil
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import cache
 from pathlib import Path
 from typing import Any
 
 import duckdb
 
-from pipeline.config import RunConfig, to_dict
-from pipeline.io.workspace import PACKAGE_DIR, workspace
+from pipeline.config import validate_run_id
+from pipeline.errors import PipelineError, StageInputError
+from pipeline.io.workspace import workspace
 
-RUNS_DIR = Path("runs")
+STAGES_DIR = ".stages"
+ENTRY_FILE = "stage.json"
 
-SOURCES_TOML = workspace().sources_toml
 
-
-@cache
-def code_version() -> str:
-    """sha256 (12 hex) of the package's source and the catalogue source descriptions."""
-    h = hashlib.sha256()
-    files = sorted(PACKAGE_DIR.rglob("*.py"))
-    if SOURCES_TOML.is_file():
-        files.append(SOURCES_TOML)
-    for f in files:
-        h.update(str(f.relative_to(PACKAGE_DIR.parent)).encode())
-        h.update(f.read_bytes())
-    return h.hexdigest()[:12]
+class RunLockedError(PipelineError):
+    """Another command holds the run's lock (and we were told not to wait)."""
 
 
 def sha256_file(path: Path, chunk: int = 1 << 22) -> str:
-    """Hex sha256 of a file's bytes (remembered while the file's size and mtime are unchanged:
-    a run computes every stage's key, and each includes the catalogue source's hash)."""
+    """Hex sha256 of a file's bytes (remembered while its size and mtime are unchanged)."""
     st = Path(path).stat()
     return _sha256(str(Path(path).resolve()), st.st_size, st.st_mtime_ns, chunk)
 
@@ -58,23 +67,60 @@ def _sha256(path: str, size: int, mtime_ns: int, chunk: int) -> str:
     return h.hexdigest()
 
 
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write bytes to `path` through a temporary name, fsync and a rename (ENOSPC/EFBIG raise)."""
+    tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def atomic_write_text(path: Path, text: str) -> None:
     """Write text to `path` through a temporary name and a rename."""
-    tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    atomic_write_bytes(path, text.encode())
 
 
 def now_iso() -> str:
     return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
 
 
-class RunStore:
-    """One run folder: config snapshot, manifest, stage outputs and `run.duckdb`."""
+def pid_alive(pid: int) -> bool:
+    """True when a process `pid` exists on this machine."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
-    def __init__(self, run_id: str, root: Path = RUNS_DIR):
-        self.run_id = run_id
-        self.run_dir = Path(root) / run_id
+
+def sweep_dead_temporaries(folder: Path) -> list[Path]:
+    """Remove `.tmp-<pid>-*` files and folders in `folder` whose process is gone."""
+    removed = []
+    for p in folder.glob(".tmp-*"):
+        m = re.match(r"\.tmp-(\d+)-", p.name)
+        if m and not pid_alive(int(m.group(1))):
+            shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+            removed.append(p)
+    return removed
+
+
+class RunStore:
+    """One run folder: committed stage outputs, their entries, the lock and the derived views."""
+
+    def __init__(self, run_id: str, root: Path | None = None):
+        self.run_id = validate_run_id(run_id)
+        self.root = workspace().runs_dir if root is None else Path(root)
+        self.run_dir = self.root / run_id
+
+    # --- reading what is committed ---------------------------------------------------------------
 
     @property
     def manifest_path(self) -> Path:
@@ -84,108 +130,250 @@ class RunStore:
     def duckdb_path(self) -> Path:
         return self.run_dir / "run.duckdb"
 
-    def path(self, name: str) -> Path:
-        return self.run_dir / name
+    @property
+    def stages_dir(self) -> Path:
+        return self.run_dir / STAGES_DIR
 
-    def manifest(self) -> dict[str, Any]:
-        if not self.manifest_path.is_file():
-            return {"run_id": self.run_id, "stages": {}}
-        return json.loads(self.manifest_path.read_text())
+    def stage_dir(self, stage: str) -> Path:
+        """The committed folder of `stage` (a symlink into .stages/)."""
+        return self.run_dir / stage
+
+    def committed_stages(self) -> list[str]:
+        """Stages with a committed output set, by name."""
+        if not self.run_dir.is_dir():
+            return []
+        return sorted(p.name for p in self.run_dir.iterdir()
+                      if p.is_symlink() and (p / ENTRY_FILE).is_file())
 
     def entry(self, stage: str) -> dict[str, Any] | None:
-        return self.manifest()["stages"].get(stage)
+        """The committed manifest entry of `stage` (None when it never committed)."""
+        path = self.stage_dir(stage) / ENTRY_FILE
+        if not path.is_file():
+            return None
+        try:
+            return json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError):
+            return None
 
-    def key_of(self, stage: str) -> str | None:
+    def token(self, stage: str) -> str | None:
+        """The committed folder's name of `stage` (changes with every commit)."""
+        link = self.stage_dir(stage)
+        return os.readlink(link) if link.is_symlink() else None
+
+    def manifest(self) -> dict[str, Any]:
+        """All committed entries: {"run_id", "stages": {stage: entry}}."""
+        return {"run_id": self.run_id,
+                "stages": {s: e for s in self.committed_stages() if (e := self.entry(s))}}
+
+    def artifacts(self) -> dict[str, Path]:
+        """Every committed output by name (e.g. "detections.parquet") -> its path."""
+        found = {}
+        for stage in self.committed_stages():
+            entry = self.entry(stage) or {}
+            for name in entry.get("outputs", {}):
+                found[name] = self.stage_dir(stage) / name
+        return found
+
+    def path(self, artifact: str) -> Path:
+        """The committed path of output `artifact`; StageInputError when no stage committed it."""
+        p = self.artifacts().get(artifact)
+        if p is None:
+            raise StageInputError(f"run {self.run_id!r} has no {artifact!r}: run `just run "
+                                  f"{self.run_id}` (or the stage that writes it) first")
+        return p
+
+    def tables(self) -> dict[str, Path]:
+        """The run's tables: table name (the Parquet file's stem) -> committed Parquet path."""
+        return {Path(n).stem: p for n, p in self.artifacts().items() if n.endswith(".parquet")}
+
+    def recordings(self) -> list[Path]:
+        """The run's committed Rerun recordings."""
+        return sorted(p for n, p in self.artifacts().items() if n.endswith(".rrd"))
+
+    def catalogue_db(self) -> Path | None:
+        """The catalogue database this run's stages used (from the ingest stage's outputs)."""
+        p = self.artifacts().get("catalogue.json")
+        return None if p is None else Path(json.loads(p.read_text())["db_path"])
+
+    def is_fresh(self, stage: str, key: str, upstream: dict[str, str | None] | None = None
+                 ) -> bool:
+        """Committed with `key`, on the same upstream commits, and every output as promised."""
         e = self.entry(stage)
-        return None if e is None else e["key"]
+        if e is None or e.get("key") != key:
+            return False
+        for up, token in (upstream or {}).items():
+            if e.get("inputs", {}).get(up, {}).get("token") != token:
+                return False
+        folder = self.stage_dir(stage)
+        for name, promised in e.get("outputs", {}).items():
+            p = folder / name
+            try:
+                st = p.stat()
+            except OSError:
+                return False
+            if st.st_size != promised["bytes"]:
+                return False
+            if st.st_mtime_ns != promised["mtime_ns"] and sha256_file(p) != promised["sha256"]:
+                return False
+        return True
 
-    def is_fresh(self, stage: str, key: str) -> bool:
-        e = self.entry(stage)
-        return (e is not None and e["key"] == key
-                and all(self.path(name).exists() for name in e["outputs"])
-                and (not e["tables"] or self.duckdb_path.exists()))
+    # --- writing ---------------------------------------------------------------------------------
 
-    def write_config(self, cfg: RunConfig) -> Path:
-        """Snapshot of the resolved config (what this run's stages ran with)."""
+    @contextmanager
+    def lock(self, wait: bool = True, announce: Any = None) -> Iterator[None]:
+        """Hold the run's lock (one command per run at a time); sweep dead leftovers inside.
+
+        `wait=False` raises RunLockedError at once when another command holds it; otherwise wait,
+        saying once who holds it through `announce(line)`."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        path = self.path("config.json")
-        atomic_write_text(path, json.dumps(to_dict(cfg), indent=2) + "\n")
-        return path
+        fd = os.open(self.run_dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                if exc.errno not in (errno.EAGAIN, errno.EACCES):
+                    raise
+                holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "?"
+                msg = f"run {self.run_id!r} is in use by another command (pid {holder})"
+                if not wait:
+                    raise RunLockedError(msg) from None
+                if announce is not None:
+                    announce(f"{msg}: waiting for it to finish")
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, str(os.getpid()).encode(), 0)
+            self._sweep_garbage()
+            yield
+        finally:
+            os.close(fd)
 
-    def begin(self, stage: str, key: str, inputs: dict[str, Any], config_hash: str | None = None,
-              force: bool = False) -> StageTransaction:
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        return StageTransaction(self, stage, key, inputs, config_hash, force)
+    def _sweep_garbage(self) -> None:
+        """Under the lock: remove stage folders no symlink points at, and dead temporaries."""
+        sweep_dead_temporaries(self.run_dir)
+        if not self.stages_dir.is_dir():
+            return
+        live = {Path(t).name for s in self.committed_stages() if (t := self.token(s))}
+        for p in self.stages_dir.iterdir():
+            if p.name not in live:
+                shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() \
+                    else p.unlink(missing_ok=True)
 
-    def _commit_entry(self, stage: str, entry: dict[str, Any]) -> None:
+    def begin(self, stage: str, key: str, inputs: dict[str, Any], config_hash: str,
+              code_hash: str, force: bool = False) -> StageTransaction:
+        """A transaction writing `stage`'s outputs into a fresh folder (call under `lock()`)."""
+        self.stages_dir.mkdir(parents=True, exist_ok=True)
+        return StageTransaction(self, stage, key, inputs, config_hash, code_hash, force)
+
+    def _publish(self, stage: str, folder: Path) -> None:
+        """The atomic step: point `stage`'s symlink at `folder`, then drop the old folder."""
+        old = self.token(stage)
+        link_tmp = self.run_dir / f".tmp-{os.getpid()}-link-{stage}"
+        link_tmp.unlink(missing_ok=True)
+        os.symlink(os.path.relpath(folder, self.run_dir), link_tmp)
+        os.replace(link_tmp, self.stage_dir(stage))
+        _fsync_dir(self.run_dir)
+        if old is not None and (self.run_dir / old).resolve() != folder.resolve():
+            shutil.rmtree(self.run_dir / old, ignore_errors=True)
+
+    def refresh_views(self, config: dict[str, Any] | None = None) -> None:
+        """Rewrite the derived files: manifest.json, config.json and run.duckdb's views."""
         manifest = self.manifest()
-        manifest["stages"][stage] = entry
         manifest["updated_at"] = now_iso()
         atomic_write_text(self.manifest_path, json.dumps(manifest, indent=2) + "\n")
+        if config is not None:
+            atomic_write_text(self.run_dir / "config.json", json.dumps(config, indent=2) + "\n")
+        tables = {name: self.stage_dir(stage) / f"{name}.parquet"
+                  for stage, e in manifest["stages"].items() for name in e.get("tables", [])}
+        tmp = self.run_dir / f".tmp-{os.getpid()}-run.duckdb"
+        tmp.unlink(missing_ok=True)
+        con = duckdb.connect(str(tmp))
+        try:
+            for name, path in sorted(tables.items()):
+                con.execute(f'CREATE VIEW "{name}" AS SELECT * FROM read_parquet('
+                            f"'{_sql_str(str(path.absolute()))}')")
+        finally:
+            con.close()
+        os.replace(tmp, self.duckdb_path)
+
+
+def _sql_str(text: str) -> str:
+    return text.replace("'", "''")
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 class StageTransaction:
-    """Collects a stage's outputs under temporary names; `commit` publishes them all at once."""
+    """A stage's outputs in a fresh folder; `commit` publishes them all at once, `abort` drops."""
 
     def __init__(self, store: RunStore, stage: str, key: str, inputs: dict[str, Any],
-                 config_hash: str | None = None, force: bool = False):
+                 config_hash: str, code_hash: str, force: bool = False):
         self.store, self.stage, self.key, self.inputs = store, stage, key, inputs
-        self.config_hash = config_hash  # of the stage's own config (the key adds upstream, code)
+        self.config_hash, self.code_hash = config_hash, code_hash
         self.force = force  # rebuild shared outputs (the catalogue) even when they look current
-        self._files: dict[str, Path] = {}
-        self._tables: dict[str, Any] = {}
+        name = f"{stage}.{time.strftime('%Y%m%dT%H%M%S')}-{secrets.token_hex(4)}"
+        self.folder = store.stages_dir / name
+        self.folder.mkdir()
+        self._outputs: list[str] = []
+        self._published = False
+        self.tables: list[str] = []
         self.rows: dict[str, int] = {}
         self._t0 = time.perf_counter()
 
     def output(self, name: str) -> Path:
-        """Temporary path to write output `name` to (published as runs/<id>/<name>)."""
-        tmp = self.store.run_dir / f".tmp-{os.getpid()}-{name}"
-        self._files[name] = tmp
-        return tmp
+        """Path to write output `name` to (published as runs/<id>/<stage>/<name>)."""
+        if name not in self._outputs:
+            self._outputs.append(name)
+        return self.folder / name
 
-    def table(self, name: str, frame: Any) -> None:
-        """A polars DataFrame to store as table `name` of run.duckdb on commit."""
-        self._tables[name] = frame
+    def table(self, name: str, frame: Any) -> Path:
+        """Write a polars DataFrame as `<name>.parquet`, a table of the run (SQL: `name`)."""
+        path = self.output(f"{name}.parquet")
+        frame.write_parquet(path)
+        self.tables.append(name)
         self.rows[name] = frame.height
+        return path
 
-    def commit(self, info: dict[str, Any] | None = None) -> dict[str, Any]:
-        """Publish outputs, replace tables in one DuckDB transaction, then write the manifest."""
-        if self._tables:
-            con = duckdb.connect(str(self.store.duckdb_path))
-            try:
-                con.begin()
-                for name, frame in self._tables.items():
-                    con.register("_frame", frame.to_arrow())
-                    con.execute(f'CREATE OR REPLACE TABLE "{name}" AS SELECT * FROM _frame')
-                    con.unregister("_frame")
-                con.commit()
-            except BaseException:
-                con.rollback()
-                raise
-            finally:
-                con.close()
-        for name, tmp in self._files.items():
-            os.replace(tmp, self.store.path(name))
-        outputs = {name: {"bytes": self.store.path(name).stat().st_size} for name in self._files}
+    def commit(self, info: dict[str, Any] | None = None, config: dict[str, Any] | None = None
+               ) -> dict[str, Any]:
+        """Write the entry beside the outputs, then publish the folder with one atomic rename."""
+        outputs = {}
+        for name in self._outputs:
+            p = self.folder / name
+            if not p.is_file():
+                raise StageInputError(f"stage {self.stage!r} declared output {name!r} but did "
+                                      "not write it")
+            with open(p, "rb") as f:
+                os.fsync(f.fileno())
+            st = p.stat()
+            outputs[name] = {"bytes": st.st_size, "mtime_ns": st.st_mtime_ns,
+                             "sha256": sha256_file(p)}
         entry = {
+            "stage": self.stage,
             "key": self.key,
             "config_hash": self.config_hash,
-            "code_version": code_version(),
+            "code_hash": self.code_hash,
             "inputs": self.inputs,
             "outputs": outputs,
-            "tables": sorted(self._tables),
+            "tables": self.tables,
             "rows": self.rows,
             "wall_time_s": round(time.perf_counter() - self._t0, 3),
             "finished_at": now_iso(),
             "info": info or {},
         }
-        self.store._commit_entry(self.stage, entry)
+        atomic_write_text(self.folder / ENTRY_FILE, json.dumps(entry, indent=2) + "\n")
+        _fsync_dir(self.folder)
+        self.store._publish(self.stage, self.folder)
+        self._published = True
+        self.store.refresh_views(config)
         return entry
 
     def abort(self) -> None:
-        """Remove the temporary files; the previous outputs stay as they were."""
-        for tmp in self._files.values():
-            if tmp.is_dir():
-                shutil.rmtree(tmp, ignore_errors=True)
-            else:
-                tmp.unlink(missing_ok=True)
+        """Remove the fresh folder (unless published); the previous outputs stay as they were."""
+        if not self._published:
+            shutil.rmtree(self.folder, ignore_errors=True)

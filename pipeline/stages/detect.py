@@ -1,132 +1,61 @@
 """Stage `detect`: per frame, the craters in view, visible, identified and used, with their
 measurements (paper Sec. 3.4-3.5). Writes detections.parquet (one row per visible crater per frame,
-keyed by (frame, det_index)),
-frames.parquet (per-frame counts and footprint corners), both as tables of run.duckdb, and
-detection.rrd.
+keyed by (frame, det_index)), frames.parquet (per-frame counts and footprint corners) and
+detection.rrd. It loads the catalogue the ingest stage recorded and checks, before committing, that
+the database was not replaced meanwhile.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import polars as pl
 
-from pipeline.config import DetectionConfig, RunConfig
-from pipeline.constants import MOON_RADIUS_M
-from pipeline.core import camera, frames, identification
-from pipeline.core.detection import DetectionModel, detect_frame, frame_rngs
-from pipeline.io.catalogue_db import Catalogue, load_catalogue
-from pipeline.io.store import RunStore, StageTransaction
-from pipeline.io.tables import quats, xyz, xyz_columns
-from pipeline.stages import StageResult, progress_bar
+from pipeline.engine.progress import progress_bar
+from pipeline.engine.stage import Stage, StageContext, StageResult
+from pipeline.errors import StageInputError
+from pipeline.io.catalogue_db import Catalogue, load_catalogue, read_meta
+from pipeline.ops.detect import detect_all, model_of
 from pipeline.viz import recording
 
 
-def key_parts(cfg: RunConfig) -> tuple[Any, ...]:
-    return (cfg.detection, cfg.seed)
+def load_recorded_catalogue(catalogue_json: Path) -> Catalogue:
+    """The catalogue the run's ingest stage recorded; StageInputError if the database holds
+    another one now (a concurrent `just ingest` replaced it)."""
+    facts = json.loads(catalogue_json.read_text())
+    craters = load_catalogue(Path(facts["db_path"]))
+    if craters.meta.get("key") != facts["key"]:
+        raise StageInputError(f"{facts['db_path']}: holds another catalogue than the run's "
+                              "ingest stage built (replaced by another `just ingest`?); rerun "
+                              "`just ingest` for this scenario")
+    return craters
 
 
-def model_of(d: DetectionConfig) -> DetectionModel:
-    return DetectionModel(
-        fov=camera.FieldOfView.from_config(d.fov_deg, d.fov_convention),
-        image_size_px=d.image_size_px, visibility_a=d.visibility_a,
-        visibility_b_per_km=d.visibility_b_per_km, visibility_diam_unit=d.visibility_diam_unit,
-        p_identify=d.p_identify, max_craters=d.max_craters, selection=d.selection,
-        false_match_share=d.false_match_share, sigma_bearing=d.sigma_bearing,
-        sigma_range_m=d.sigma_range_m, moon_radius_m=MOON_RADIUS_M)
+def check_catalogue_unchanged(catalogue_json: Path) -> None:
+    """Just before a commit: the database still holds the catalogue the stage loaded."""
+    facts = json.loads(catalogue_json.read_text())
+    meta = read_meta(Path(facts["db_path"]))
+    if meta is None or meta.get("key") != facts["key"]:
+        raise StageInputError(f"{facts['db_path']}: the catalogue was replaced while the stage "
+                              "ran; nothing was committed, rerun the command")
 
 
-def detect_all(model: DetectionModel, craters: Catalogue, trajectory: pl.DataFrame, seed: int,
-               advance=None) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """Detections (one row per visible crater and frame) and the per-frame table."""
-    frame = trajectory["frame"].to_numpy()
-    t_s = trajectory["t_s"].to_numpy()
-    theta = trajectory["theta_m_rad"].to_numpy()
-    alt_m = trajectory["altitude_m"].to_numpy()
-    r_mcmf = xyz(trajectory, "r_mcmf", "_m")
-    dcm_mci_from_body = frames.dcm_from_q(quats(trajectory, "q_mci_from_body"))
-    dcm_body_from_mcmf = np.swapaxes(dcm_mci_from_body, -1, -2) @ frames.dcm_mci_from_mcmf(theta)
-    per_frame = []
-    for i in range(frame.size):
-        per_frame.append(detect_frame(model, craters, r_mcmf[i], dcm_body_from_mcmf[i], alt_m[i],
-                                      frame_rngs(seed, int(frame[i]))))
-        if advance is not None:
-            advance()
-    counts = np.array([f.row.size for f in per_frame], dtype=np.int64)
-
-    def cat(attr: str) -> np.ndarray:
-        return np.concatenate([getattr(f, attr) for f in per_frame]) if per_frame else np.empty(0)
-
-    row, matched = cat("row").astype(np.int64), cat("matched_row").astype(np.int64)
-    theta_rows = np.repeat(theta, counts)
-    c_mci = frames.mci_from_mcmf(craters.r_mcmf_m[matched], theta_rows)
-    u_true = cat("u_true_body").reshape(-1, 3)
-    u_meas = cat("u_meas_body").reshape(-1, 3)
-    pixel = cat("pixel_uv").reshape(-1, 2)
-    first_row = np.repeat(np.cumsum(counts) - counts, counts)
-    detections = pl.DataFrame({
-        "frame": np.repeat(frame, counts).astype(np.int32), "t_s": np.repeat(t_s, counts),
-        "det_index": (np.arange(counts.sum()) - first_row).astype(np.int32),
-        "crater_id": craters.crater_id[row], "diam_km": craters.diam_km[row],
-        "matched_id": craters.crater_id[matched], **xyz_columns("c_mci", "_m", c_mci),
-        **xyz_columns("u_true_body", "", u_true), **xyz_columns("u_meas_body", "", u_meas),
-        "rho_true_m": cat("rho_true_m"), "rho_meas_m": cat("rho_meas_m"),
-        "pixel_u": pixel[:, 0], "pixel_v": pixel[:, 1],
-        "identified": cat("identified").astype(bool), "used": cat("used").astype(bool),
-        "false_match": row != matched,
-    })
-    corners = np.stack([f.corners_mcmf_m for f in per_frame]) if per_frame else np.empty((0, 4, 3))
-    lat, lon, _ = frames.latlon_from_mcmf(corners)
-    frames_table = pl.DataFrame({
-        "frame": frame.astype(np.int32), "t_s": t_s, "altitude_km": alt_m / 1e3,
-        "d_min_km": [f.d_min_km for f in per_frame],
-        "n_candidates": [f.n_candidates for f in per_frame],
-        "n_visible": counts,
-        "n_identified": [int(f.identified.sum()) for f in per_frame],
-        "n_used": [int(f.used.sum()) for f in per_frame],
-        "n_false_match": [int(f.false_match.sum()) for f in per_frame],
-        **{f"corner{j + 1}_lat_deg": np.degrees(lat[:, j]) for j in range(4)},
-        **{f"corner{j + 1}_lon_deg": np.degrees(lon[:, j]) for j in range(4)},
-    }, schema_overrides={"n_candidates": pl.Int64, "n_identified": pl.Int64,
-                         "n_used": pl.Int64, "n_false_match": pl.Int64})
-    return detections, frames_table
-
-
-def reselect(detections: pl.DataFrame, cap: int | None, strategy: str, seed: int,
-             image_size_px: int) -> np.ndarray:
-    """The `used` mask the stage would give with another cap or strategy (same seed): the
-    selection's own per-frame stream makes this exact, so a sweep reuses one detection pass."""
-    frame = detections["frame"].to_numpy()
-    starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
-    ends = np.r_[starts[1:], frame.size]
-    identified = detections["identified"].to_numpy()
-    diam = detections["diam_km"].to_numpy()
-    rho = detections["rho_meas_m"].to_numpy()
-    pixel = np.stack([detections["pixel_u"].to_numpy(), detections["pixel_v"].to_numpy()], 1)
-    used = np.zeros(frame.size, bool)
-    for a, b in zip(starts, ends, strict=True):
-        rng = frame_rngs(seed, int(frame[a]))["select"]
-        used[a:b] = identification.select_used(rng, identified[a:b], cap, strategy, diam[a:b],
-                                               rho[a:b], pixel[a:b], image_size_px)
-    return used
-
-
-def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> StageResult:
-    trajectory = pl.read_parquet(store.path("trajectory.parquet"))
-    craters = load_catalogue(Path(cfg.catalogue.db_path))
+def run(ctx: StageContext) -> StageResult:
+    cfg, tx = ctx.cfg, ctx.tx
+    trajectory = pl.read_parquet(ctx.input("trajectory.parquet"))
+    craters = load_recorded_catalogue(ctx.input("catalogue.json"))
     model = model_of(cfg.detection)
     with progress_bar("detecting craters", trajectory.height) as advance:
         detections, frames_table = detect_all(model, craters, trajectory, cfg.seed, advance)
-    detections.write_parquet(tx.output("detections.parquet"))
-    frames_table.write_parquet(tx.output("frames.parquet"))
     tx.table("detections", detections)
     tx.table("frames", frames_table)
-    with recording.recording(store.run_id, tx.output("detection.rrd")) as rec:
+    with recording.recording(ctx.store.run_id, tx.output("detection.rrd")) as rec:
         recording.log_detection(rec, model, trajectory, detections, frames_table)
     n = frames_table
     peak = int(n["n_visible"].max()) if n.height else 0
+    folder = ctx.store.stage_dir("detect")
     return StageResult(
         info={"fov_convention": cfg.detection.fov_convention,
               "edge_half_angle_deg": float(np.degrees(model.fov.edge_half_angle_rad)),
@@ -134,12 +63,23 @@ def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> StageResult:
               "catalogue_key": craters.meta["key"], "peak_visible": peak,
               "mean_used": float(n["n_used"].mean()) if n.height else 0.0},
         summary=(
-            f"wrote {store.path('detections.parquet')} ({detections.height:,} visible craters "
+            f"wrote {folder / 'detections.parquet'} ({detections.height:,} visible craters "
             f"over {n.height:,} frames, peak {peak} per frame; field of view "
             f"{cfg.detection.fov_deg:g} deg {cfg.detection.fov_convention})",
-            f"wrote {store.path('frames.parquet')} and tables detections, frames in "
-            f"{store.duckdb_path}",
-            f"ask it: just sql --run {store.run_id} \"SELECT frame, n_visible, n_used FROM frames "
-            "WHERE t_s = 2000\"",
-            f"look at it: rerun {store.path('detection.rrd')}",
+            f"wrote {folder / 'frames.parquet'} (tables detections, frames)",
+            f"ask it: just sql --run {ctx.store.run_id} \"SELECT frame, n_visible, n_used FROM "
+            "frames WHERE t_s = 2000\"",
+            f"look at it: rerun {folder / 'detection.rrd'}",
         ))
+
+
+STAGE = Stage(
+    name="detect",
+    doc="craters in view, visible (Eq. 9), identified, used; their measurements",
+    reads=("detection", "seed"),
+    inputs=("catalogue.json", "trajectory.parquet"),
+    outputs=("detections.parquet", "frames.parquet", "detection.rrd"),
+    code=("pipeline.stages.detect",),
+    run=run,
+    verify=lambda ctx: check_catalogue_unchanged(ctx.input("catalogue.json")),
+)

@@ -1,144 +1,44 @@
 """Stage `estimate`: per frame and method, the pose from the used craters (paper Sec. 4 and beyond).
 
-An estimator sees only the used craters' catalogue positions (of the crater they were identified
-as), the measured bearings and ranges, the noise sigmas and its own previous estimate (the warm
-start); never the truth. Writes estimates.parquet (one row per frame and method), the `estimates`
-table of run.duckdb and estimation.rrd.
+Writes estimates.parquet (one row per frame and method) and estimation.rrd.
 """
 
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass
-from typing import Any
-
-import numpy as np
 import polars as pl
 
 from pipeline.config import RunConfig
-from pipeline.core.estimators import PoseEstimate, RobustOptions, estimate_pose
-from pipeline.io.store import RunStore, StageTransaction
-from pipeline.io.tables import quat_columns, xyz, xyz_columns
-from pipeline.stages import StageResult, progress_bar
+from pipeline.core.estimators import RobustOptions
+from pipeline.engine.progress import progress_bar
+from pipeline.engine.stage import Stage, StageContext, StageResult
+from pipeline.ops.estimate import EstimateOptions, UsedCraters, estimate_all
 from pipeline.viz import recording
 
-_STREAM_TAG = 0xE57  # separates the robust estimator's streams from other users of the seed
 
-
-@dataclass(frozen=True)
-class UsedCraters:
-    """The used craters of every frame, as the estimators see them (rows grouped by frame)."""
-
-    frame: np.ndarray  # (F,) every frame of the run
-    t_s: np.ndarray  # (F,)
-    start: np.ndarray  # (F + 1,) rows of frame i: start[i]:start[i + 1]
-    det_index: np.ndarray  # (N,) the detection's index within its frame
-    matched_id: np.ndarray  # (N,) catalogue id each crater was identified as
-    c_mci_m: np.ndarray  # (N, 3)
-    u_body: np.ndarray  # (N, 3) measured bearings
-    rho_m: np.ndarray  # (N,) measured ranges
-
-    @classmethod
-    def from_tables(cls, detections: pl.DataFrame, frames_table: pl.DataFrame,
-                    used: np.ndarray | None = None) -> UsedCraters:
-        """From the detection stage's tables; `used` overrides the `used` column (the sweep)."""
-        mask = detections["used"].to_numpy() if used is None else used
-        d = detections.filter(pl.Series(mask))
-        frame = frames_table["frame"].to_numpy()
-        start = np.searchsorted(d["frame"].to_numpy(), frame, side="left")
-        return cls(frame, frames_table["t_s"].to_numpy(), np.r_[start, d.height],
-                   d["det_index"].to_numpy(), d["matched_id"].to_numpy(),
-                   xyz(d, "c_mci", "_m"), xyz(d, "u_meas_body", ""), d["rho_meas_m"].to_numpy())
-
-
-def key_parts(cfg: RunConfig) -> tuple[Any, ...]:
-    return (cfg.estimation, cfg.detection.sigma_bearing, cfg.detection.sigma_range_m, cfg.seed)
-
-
-def estimate_all(cfg: RunConfig, craters: UsedCraters, seed: int, advance=None) -> pl.DataFrame:
-    """Every method on every frame, each method warm-started from its own previous estimate."""
+def options(cfg: RunConfig) -> EstimateOptions:
+    """The navigator's options of a run."""
     e, d = cfg.estimation, cfg.detection
+    sigma_bearing, sigma_range_m = cfg.navigator_sigmas()
     robust = (RobustOptions(e.gate_probability, e.ransac_max_hypotheses, e.ransac_confidence)
               if e.robust else None)
-    rows: list[dict[str, Any]] = []
-    for m_index, method in enumerate(e.methods):
-        prior = None
-        for i, frame in enumerate(craters.frame):
-            a, b = craters.start[i], craters.start[i + 1]
-            rng = None
-            if robust is not None:
-                ss = np.random.SeedSequence(seed, spawn_key=(_STREAM_TAG, int(frame), m_index))
-                rng = np.random.Generator(np.random.PCG64(ss))
-            t0 = time.perf_counter()
-            est = estimate_pose(method, craters.c_mci_m[a:b], craters.u_body[a:b],
-                                craters.rho_m[a:b], sigma_bearing=d.sigma_bearing,
-                                sigma_range_m=d.sigma_range_m, r_prior_mci_m=prior,
-                                step_tol_m=e.step_tol_m, max_iterations=e.max_iterations,
-                                robust=robust, rng=rng)
-            solve_ms = (time.perf_counter() - t0) * 1e3
-            prior = est.r_mci_m if est.status == "ok" else None
-            rows.append(_row(int(frame), float(craters.t_s[i]), method, est, solve_ms,
-                             craters, a, b))
-            if advance is not None:
-                advance()
-    return _table(rows, d.max_craters)
+    return EstimateOptions(
+        methods=e.methods,
+        sigma_bearing=sigma_bearing, sigma_range_m=sigma_range_m,
+        step_tol_m=e.step_tol_m, max_iterations=e.max_iterations, robust=robust,
+        cap=d.max_craters)
 
 
-def _row(frame: int, t_s: float, method: str, est: PoseEstimate, solve_ms: float,
-         craters: UsedCraters, a: int, b: int) -> dict[str, Any]:
-    """A table row; `rejected` are the craters a fit dropped as outliers (rows with non-finite
-    measurements, which no estimator can use, are not counted as outliers)."""
-    finite = (np.all(np.isfinite(craters.c_mci_m[a:b]), axis=1)
-              & np.all(np.isfinite(craters.u_body[a:b]), axis=1)
-              & np.isfinite(craters.rho_m[a:b]))
-    rejected = finite & ~est.inliers if est.status == "ok" else np.zeros(b - a, bool)
-    return {"frame": frame, "t_s": t_s, "method": method, "status": est.status,
-            "r": est.r_mci_m, "q": est.q_mci_from_body, "cov": est.cov,
-            "att_cov_quest": est.att_cov_quest, "n_used": b - a,
-            "n_rejected": int(rejected.sum()),
-            "rejected_ids": craters.matched_id[a:b][rejected].tolist(),
-            "rejected_det_index": craters.det_index[a:b][rejected].tolist(),
-            "iterations": est.iterations, "solve_ms": solve_ms}
-
-
-def _table(rows: list[dict[str, Any]], cap: int | None) -> pl.DataFrame:
-    r = np.array([row["r"] for row in rows]).reshape(-1, 3)
-    q = np.array([row["q"] for row in rows]).reshape(-1, 4)
-    cov = np.array([row["cov"] for row in rows]).reshape(-1, 6, 6)
-    sigma = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
-    return pl.DataFrame({
-        "frame": pl.Series([row["frame"] for row in rows], dtype=pl.Int32),
-        "t_s": [row["t_s"] for row in rows],
-        "method": [row["method"] for row in rows],
-        "cap": pl.Series([cap] * len(rows), dtype=pl.Int64),
-        "status": [row["status"] for row in rows],
-        **xyz_columns("r_mci", "_m", r), **quat_columns("q_mci_from_body", q),
-        **xyz_columns("sigma_pos", "_m", sigma[:, :3]),
-        **xyz_columns("sigma_att", "_rad", sigma[:, 3:]),
-        "cov": pl.Series(cov.reshape(-1, 36), dtype=pl.Array(pl.Float64, 36)),
-        "att_cov_quest": pl.Series(np.array([row["att_cov_quest"] for row in rows]).reshape(-1, 9),
-                                   dtype=pl.Array(pl.Float64, 9)),
-        "n_used": pl.Series([row["n_used"] for row in rows], dtype=pl.Int64),
-        "n_rejected": pl.Series([row["n_rejected"] for row in rows], dtype=pl.Int64),
-        "rejected_ids": pl.Series([row["rejected_ids"] for row in rows], dtype=pl.List(pl.Int64)),
-        "rejected_det_index": pl.Series([row["rejected_det_index"] for row in rows],
-                                        dtype=pl.List(pl.Int32)),
-        "iterations": pl.Series([row["iterations"] for row in rows], dtype=pl.Int32),
-        "solve_ms": [row["solve_ms"] for row in rows],
-    })
-
-
-def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> StageResult:
-    detections = pl.read_parquet(store.path("detections.parquet"))
-    frames_table = pl.read_parquet(store.path("frames.parquet"))
+def run(ctx: StageContext) -> StageResult:
+    cfg, tx = ctx.cfg, ctx.tx
+    detections = pl.read_parquet(ctx.input("detections.parquet"))
+    frames_table = pl.read_parquet(ctx.input("frames.parquet"))
     craters = UsedCraters.from_tables(detections, frames_table)
     total = craters.frame.size * len(cfg.estimation.methods)
     with progress_bar("estimating poses", total) as advance:
-        estimates = estimate_all(cfg, craters, cfg.seed, advance)
-    estimates.write_parquet(tx.output("estimates.parquet"))
+        estimates = estimate_all(craters, options(cfg), cfg.seed, advance)
     tx.table("estimates", estimates)
-    trajectory = pl.read_parquet(store.path("trajectory.parquet"))
-    with recording.recording(store.run_id, tx.output("estimation.rrd")) as rec:
+    trajectory = pl.read_parquet(ctx.input("trajectory.parquet"))
+    with recording.recording(ctx.store.run_id, tx.output("estimation.rrd")) as rec:
         recording.log_estimation(rec, estimates, detections, trajectory)
     lines = []
     for method in cfg.estimation.methods:
@@ -149,7 +49,19 @@ def run(cfg: RunConfig, store: RunStore, tx: StageTransaction) -> StageResult:
                      f"{int(m['n_rejected'].sum()):,} craters rejected as outliers")
     statuses = {f"{meth}/{st}": n for meth, st, n in
                 estimates.group_by("method", "status").len().sort("method", "status").iter_rows()}
+    folder = ctx.store.stage_dir("estimate")
     return StageResult(info={"status_counts": statuses, "robust": cfg.estimation.robust},
-                       summary=(f"wrote {store.path('estimates.parquet')} and table estimates in "
-                                f"{store.duckdb_path}", *lines,
-                                f"look at it: rerun {store.path('estimation.rrd')}"))
+                       summary=(f"wrote {folder / 'estimates.parquet'} (table estimates)", *lines,
+                                f"look at it: rerun {folder / 'estimation.rrd'}"))
+
+
+STAGE = Stage(
+    name="estimate",
+    doc="pose per frame: the paper's method and the joint ML",
+    reads=("estimation", "detection.sigma_bearing", "detection.sigma_range_m",
+           "detection.max_craters", "seed"),
+    inputs=("detections.parquet", "frames.parquet", "trajectory.parquet"),
+    outputs=("estimates.parquet", "estimation.rrd"),
+    code=("pipeline.stages.estimate",),
+    run=run,
+)

@@ -1,0 +1,76 @@
+"""The DAG of stages, derived from their declarations (who writes each artifact)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+from pipeline.engine.stage import Stage
+from pipeline.errors import PipelineError
+
+
+class Dag:
+    """Stages in a valid order, with each stage's upstream stages (producers of its inputs)."""
+
+    def __init__(self, stages: Iterable[Stage]):
+        self.stages: dict[str, Stage] = {}
+        producer: dict[str, str] = {}
+        for s in stages:
+            if s.name in self.stages:
+                raise PipelineError(f"stage {s.name!r} declared twice")
+            self.stages[s.name] = s
+            for o in s.outputs:
+                if o in producer:
+                    raise PipelineError(f"artifact {o!r} written by both {producer[o]!r} and "
+                                        f"{s.name!r}")
+                producer[o] = s.name
+        self.producer: Mapping[str, str] = producer
+        self.upstream: dict[str, tuple[str, ...]] = {}
+        for s in self.stages.values():
+            missing = [i for i in s.inputs if i not in producer]
+            if missing:
+                raise PipelineError(f"stage {s.name!r} reads {missing}, which no stage writes")
+            self.upstream[s.name] = tuple(dict.fromkeys(producer[i] for i in s.inputs))
+        self.order = self._topological()
+
+    def _topological(self) -> tuple[str, ...]:
+        done: list[str] = []
+        visiting: set[str] = set()
+
+        def visit(name: str) -> None:
+            if name in done:
+                return
+            if name in visiting:
+                raise PipelineError(f"stage {name!r} depends on itself")
+            visiting.add(name)
+            for u in self.upstream[name]:
+                visit(u)
+            visiting.discard(name)
+            done.append(name)
+
+        for name in self.stages:
+            visit(name)
+        return tuple(done)
+
+    def __getitem__(self, name: str) -> Stage:
+        if name not in self.stages:
+            raise PipelineError(f"unknown stage {name!r}; stages are {list(self.order)}")
+        return self.stages[name]
+
+    def upstream_closure(self, names: Iterable[str]) -> list[str]:
+        """`names` and everything they need, in order."""
+        need = set()
+        todo = list(names)
+        while todo:
+            n = todo.pop()
+            if n not in need:
+                need.add(self[n].name)
+                todo.extend(self.upstream[n])
+        return [n for n in self.order if n in need]
+
+    def downstream_of(self, name: str) -> list[str]:
+        """`name` and every stage that depends on it, in order."""
+        found = {self[name].name}
+        for n in self.order:
+            if any(u in found for u in self.upstream[n]):
+                found.add(n)
+        return [n for n in self.order if n in found]

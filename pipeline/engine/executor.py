@@ -1,0 +1,110 @@
+"""The one executor: runs a plan of stage invocations on a run store, skipping what is up to date.
+
+Per stage: the cache key (its own config and code, its upstream keys), a freshness check against
+what the committed entry promises, a transaction whose outputs commit together or not at all. `run`,
+`sweep` and campaigns are all plans for it; fan-out work inside a stage goes to the runner.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+from pipeline.config import RunConfig, config_hash, to_dict
+from pipeline.engine.dag import Dag
+from pipeline.engine.fingerprint import code_hash
+from pipeline.engine.progress import console, out
+from pipeline.engine.runners import InProcessRunner, Runner
+from pipeline.engine.stage import StageContext
+from pipeline.errors import StageInputError
+from pipeline.io.store import RunStore
+
+
+@dataclass(frozen=True)
+class Invocation:
+    """One stage to bring up to date for one run's config (`force`: rerun even when fresh)."""
+
+    stage: str
+    cfg: RunConfig
+    force: bool = False
+
+
+class Executor:
+    """Runs plans of invocations over the stages of `dag`, fan-out on `runner`."""
+
+    def __init__(self, dag: Dag, runner: Runner | None = None):
+        self.dag = dag
+        self.runner: Runner = runner or InProcessRunner()
+
+    def key(self, stage: str, cfg: RunConfig, _memo: dict[str, str] | None = None) -> str:
+        """Cache key: the stage's own config and code hashes and its upstream stages' keys."""
+        memo = {} if _memo is None else _memo
+        if stage not in memo:
+            s = self.dag[stage]
+            upstream = [self.key(u, cfg, memo) for u in self.dag.upstream[stage]]
+            memo[stage] = config_hash(s.config_hash(cfg), code_hash(s.code), upstream)
+        return memo[stage]
+
+    def is_fresh(self, stage: str, cfg: RunConfig, store: RunStore) -> bool:
+        s = self.dag[stage]
+        key = self.key(stage, cfg)
+        upstream = {u: store.token(u) for u in self.dag.upstream[stage]}
+        return store.is_fresh(stage, key, upstream) and (
+            s.fresh_outside is None or s.fresh_outside(cfg, key))
+
+    def plan(self, cfg: RunConfig, stages: Iterable[str] | None = None,
+             force: Iterable[str] = ()) -> list[Invocation]:
+        """Invocations of `stages` (default: all) in DAG order; `force` reruns a stage and its
+        downstream."""
+        wanted = set(self.dag.order if stages is None else stages)
+        for name in wanted:
+            self.dag[name]  # unknown names fail here, with the known ones listed
+        forced = {d for f in force for d in self.dag.downstream_of(f)}
+        return [Invocation(n, cfg, n in forced) for n in self.dag.order if n in wanted]
+
+    def execute(self, plan: list[Invocation], store: RunStore) -> list[str]:
+        """Run a plan on one run store, under its lock; returns the stages that ran."""
+        ran = []
+        with store.lock(announce=console.print):
+            for inv in plan:
+                if self._execute(inv, store):
+                    ran.append(inv.stage)
+        return ran
+
+    def _execute(self, inv: Invocation, store: RunStore) -> bool:
+        s, cfg = self.dag[inv.stage], inv.cfg
+        key = self.key(s.name, cfg)
+        if not inv.force and self.is_fresh(s.name, cfg, store):
+            folder = store.stage_dir(s.name)
+            rrd = [o for o in s.outputs if o.endswith(".rrd")]
+            out.print(f"{s.name}: up to date (key {key}), skipped; its outputs in {folder}/: "
+                      f"{', '.join(s.outputs)}" + (f" (rerun {folder / rrd[0]})" if rrd else ""))
+            return False
+        inputs, paths = {}, {}
+        for u in self.dag.upstream[s.name]:
+            if not self.is_fresh(u, cfg, store):
+                raise StageInputError(
+                    f"stage {s.name!r} of run {store.run_id!r} needs stage {u!r}, which is "
+                    f"missing or out of date for this config: run `just {u} {cfg.name}` or "
+                    f"`just run {cfg.name}`")
+            inputs[u] = {"key": self.key(u, cfg), "token": store.token(u)}
+        for name in s.inputs:
+            paths[name] = store.stage_dir(self.dag.producer[name]) / name
+        tx = store.begin(s.name, key, inputs, s.config_hash(cfg), code_hash(s.code),
+                         force=inv.force)
+        t0 = time.perf_counter()
+        console.print(f"[bold]{s.name}[/bold]: running (run {store.run_id})")
+        try:
+            ctx = StageContext(cfg, store, tx, self.runner, paths)
+            result = s.run(ctx)
+            if s.verify is not None:
+                s.verify(ctx)
+            tx.commit({"config": s.config_parts(cfg), **result.info}, config=to_dict(cfg))
+        except BaseException:
+            tx.abort()
+            raise
+        out.print(f"{s.name}: done in {time.perf_counter() - t0:.1f} s")
+        for line in result.summary:
+            out.print(f"  {line}")
+        return True

@@ -1,0 +1,86 @@
+"""Code fingerprints: the sha256 of the modules a stage runs, found by following its imports.
+
+A stage's cache key includes the source of its own module and of every `pipeline` module it imports,
+directly or not, except the framework around the stages (config loading, the engine, the run
+store, errors), whose changes do not change what a stage computes. Editing the report module thus
+reruns only the stages that import it.
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+import importlib.util
+from functools import cache
+from pathlib import Path
+
+# Modules that carry no stage behaviour: their edits must not make every run stale.
+FRAMEWORK = ("pipeline.config", "pipeline.errors", "pipeline.engine", "pipeline.io.store",
+             "pipeline.io.workspace", "pipeline.cli")
+FRAMEWORK_EXACT = ("pipeline", "pipeline.stages")  # package inits (the stages' registry)
+
+
+def _is_framework(module: str) -> bool:
+    return module in FRAMEWORK_EXACT or any(module == f or module.startswith(f + ".")
+                                            for f in FRAMEWORK)
+
+
+@cache
+def _source(module: str) -> tuple[Path, bytes] | None:
+    try:
+        spec = importlib.util.find_spec(module)
+    except (ImportError, ValueError):  # `from pipeline.x import Name`: Name is no module
+        return None
+    if spec is None or spec.origin is None or not spec.origin.endswith(".py"):
+        return None
+    path = Path(spec.origin)
+    return path, path.read_bytes()
+
+
+@cache
+def _imports(module: str) -> tuple[str, ...]:
+    """`pipeline.*` modules imported by `module` (at any depth of its body)."""
+    found = _source(module)
+    if found is None:
+        return ()
+    path, text = found
+    is_package = path.name == "__init__.py"
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = module.split(".")
+                base = base[: len(base) - node.level + (1 if is_package else 0)]
+                parent = ".".join([*base, node.module] if node.module else base)
+            else:
+                parent = node.module or ""
+            names.add(parent)
+            names.update(f"{parent}.{a.name}" for a in node.names)
+    return tuple(sorted(n for n in names if n.startswith("pipeline") and _source(n)))
+
+
+@cache
+def closure(roots: tuple[str, ...]) -> tuple[str, ...]:
+    """The modules `roots` run: themselves and their `pipeline` imports, less the framework."""
+    seen: set[str] = set()
+    todo = list(roots)
+    while todo:
+        m = todo.pop()
+        if m in seen:
+            continue
+        seen.add(m)
+        todo.extend(i for i in _imports(m) if not _is_framework(i) or i in roots)
+    return tuple(sorted(seen))
+
+
+@cache
+def code_hash(roots: tuple[str, ...]) -> str:
+    """sha256 (16 hex) over the names and sources of `closure(roots)`."""
+    h = hashlib.sha256()
+    for m in closure(roots):
+        found = _source(m)
+        if found is not None:
+            h.update(m.encode() + b"\0" + found[1] + b"\0")
+    return h.hexdigest()[:16]

@@ -1,0 +1,99 @@
+"""Detection operations: per frame, the craters in view, visible (Eq. 9), identified and used, with
+their measurements (paper Sec. 3.4-3.5), as tables; and the exact reselection under another cap."""
+
+from __future__ import annotations
+
+import numpy as np
+import polars as pl
+
+from pipeline.config import DetectionConfig
+from pipeline.core import camera, frames, identification, rotations
+from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.detection import CraterArrays, DetectionModel, detect_frame, frame_rngs
+from pipeline.io.tables import quats, xyz, xyz_columns
+
+
+def model_of(d: DetectionConfig) -> DetectionModel:
+    """The core detection model of the `detection` options (the truth: what the sensor does)."""
+    return DetectionModel(
+        fov=camera.FieldOfView.from_config(d.fov_deg, d.fov_convention),
+        image_size_px=d.image_size_px, visibility_a=d.visibility_a,
+        visibility_b_per_km=d.visibility_b_per_km, visibility_diam_unit=d.visibility_diam_unit,
+        p_identify=d.p_identify, max_craters=d.max_craters, selection=d.selection,
+        false_match_share=d.false_match_share, sigma_bearing=d.sigma_bearing,
+        sigma_range_m=d.sigma_range_m, moon_radius_m=MOON_RADIUS_M)
+
+
+def detect_all(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFrame, seed: int,
+               advance=None) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """Detections (one row per visible crater and frame) and the per-frame table."""
+    frame = trajectory["frame"].to_numpy()
+    t_s = trajectory["t_s"].to_numpy()
+    theta = trajectory["theta_m_rad"].to_numpy()
+    alt_m = trajectory["altitude_m"].to_numpy()
+    r_mcmf = xyz(trajectory, "r_mcmf", "_m")
+    dcm_mci_from_body = rotations.dcm_from_q(quats(trajectory, "q_mci_from_body"))
+    dcm_body_from_mcmf = np.swapaxes(dcm_mci_from_body, -1, -2) @ frames.dcm_mci_from_mcmf(theta)
+    per_frame = []
+    for i in range(frame.size):
+        per_frame.append(detect_frame(model, craters, r_mcmf[i], dcm_body_from_mcmf[i], alt_m[i],
+                                      frame_rngs(seed, int(frame[i]))))
+        if advance is not None:
+            advance()
+    counts = np.array([f.row.size for f in per_frame], dtype=np.int64)
+
+    def cat(attr: str) -> np.ndarray:
+        return np.concatenate([getattr(f, attr) for f in per_frame]) if per_frame else np.empty(0)
+
+    row, matched = cat("row").astype(np.int64), cat("matched_row").astype(np.int64)
+    theta_rows = np.repeat(theta, counts)
+    c_mci = frames.mci_from_mcmf(craters.r_mcmf_m[matched], theta_rows)
+    u_true = cat("u_true_body").reshape(-1, 3)
+    u_meas = cat("u_meas_body").reshape(-1, 3)
+    pixel = cat("pixel_uv").reshape(-1, 2)
+    first_row = np.repeat(np.cumsum(counts) - counts, counts)
+    detections = pl.DataFrame({
+        "frame": np.repeat(frame, counts).astype(np.int32), "t_s": np.repeat(t_s, counts),
+        "det_index": (np.arange(counts.sum()) - first_row).astype(np.int32),
+        "crater_id": craters.crater_id[row], "diam_km": craters.diam_km[row],
+        "matched_id": craters.crater_id[matched], **xyz_columns("c_mci", "_m", c_mci),
+        **xyz_columns("u_true_body", "", u_true), **xyz_columns("u_meas_body", "", u_meas),
+        "rho_true_m": cat("rho_true_m"), "rho_meas_m": cat("rho_meas_m"),
+        "pixel_u": pixel[:, 0], "pixel_v": pixel[:, 1],
+        "identified": cat("identified").astype(bool), "used": cat("used").astype(bool),
+        "false_match": row != matched,
+    })
+    corners = np.stack([f.corners_mcmf_m for f in per_frame]) if per_frame else np.empty((0, 4, 3))
+    lat, lon, _ = frames.latlon_from_mcmf(corners)
+    frames_table = pl.DataFrame({
+        "frame": frame.astype(np.int32), "t_s": t_s, "altitude_km": alt_m / 1e3,
+        "d_min_km": [f.d_min_km for f in per_frame],
+        "n_candidates": [f.n_candidates for f in per_frame],
+        "n_visible": counts,
+        "n_identified": [int(f.identified.sum()) for f in per_frame],
+        "n_used": [int(f.used.sum()) for f in per_frame],
+        "n_false_match": [int(f.false_match.sum()) for f in per_frame],
+        **{f"corner{j + 1}_lat_deg": np.degrees(lat[:, j]) for j in range(4)},
+        **{f"corner{j + 1}_lon_deg": np.degrees(lon[:, j]) for j in range(4)},
+    }, schema_overrides={"n_candidates": pl.Int64, "n_identified": pl.Int64,
+                         "n_used": pl.Int64, "n_false_match": pl.Int64})
+    return detections, frames_table
+
+
+def reselect(detections: pl.DataFrame, cap: int | None, strategy: str, seed: int,
+             image_size_px: int) -> np.ndarray:
+    """The `used` mask the stage would give with another cap or strategy (same seed): the
+    selection's own per-frame stream makes this exact, so a sweep reuses one detection pass."""
+    frame = detections["frame"].to_numpy()
+    starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
+    ends = np.r_[starts[1:], frame.size]
+    identified = detections["identified"].to_numpy()
+    diam = detections["diam_km"].to_numpy()
+    rho = detections["rho_meas_m"].to_numpy()
+    pixel = np.stack([detections["pixel_u"].to_numpy(), detections["pixel_v"].to_numpy()], 1)
+    used = np.zeros(frame.size, bool)
+    for a, b in zip(starts, ends, strict=True):
+        rng = frame_rngs(seed, int(frame[a]))["select"]
+        used[a:b] = identification.select_used(rng, identified[a:b], cap, strategy, diam[a:b],
+                                               rho[a:b], pixel[a:b], image_size_px)
+    return used

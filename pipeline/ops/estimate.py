@@ -1,0 +1,131 @@
+"""Estimation operations: per frame and method, the pose from the used craters (paper Sec. 4 and
+beyond).
+
+An estimator sees only the used craters' catalogue positions (of the crater they were identified
+as), the measured bearings and ranges, the noise the navigator assumes and its own previous
+estimate (the warm start); never the truth."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from pipeline.core.estimators import PoseEstimate, RobustOptions, estimate_pose
+from pipeline.io.tables import quat_columns, xyz, xyz_columns
+
+_STREAM_TAG = 0xE57  # separates the robust estimator's streams from other users of the seed
+
+
+@dataclass(frozen=True)
+class UsedCraters:
+    """The used craters of every frame, as the estimators see them (rows grouped by frame)."""
+
+    frame: np.ndarray  # (F,) every frame of the run
+    t_s: np.ndarray  # (F,)
+    start: np.ndarray  # (F + 1,) rows of frame i: start[i]:start[i + 1]
+    det_index: np.ndarray  # (N,) the detection's index within its frame
+    matched_id: np.ndarray  # (N,) catalogue id each crater was identified as
+    c_mci_m: np.ndarray  # (N, 3)
+    u_body: np.ndarray  # (N, 3) measured bearings
+    rho_m: np.ndarray  # (N,) measured ranges
+
+    @classmethod
+    def from_tables(cls, detections: pl.DataFrame, frames_table: pl.DataFrame,
+                    used: np.ndarray | None = None) -> UsedCraters:
+        """From the detection stage's tables; `used` overrides the `used` column (the sweep)."""
+        mask = detections["used"].to_numpy() if used is None else used
+        d = detections.filter(pl.Series(mask))
+        frame = frames_table["frame"].to_numpy()
+        start = np.searchsorted(d["frame"].to_numpy(), frame, side="left")
+        return cls(frame, frames_table["t_s"].to_numpy(), np.r_[start, d.height],
+                   d["det_index"].to_numpy(), d["matched_id"].to_numpy(),
+                   xyz(d, "c_mci", "_m"), xyz(d, "u_meas_body", ""), d["rho_meas_m"].to_numpy())
+
+
+@dataclass(frozen=True)
+class EstimateOptions:
+    """What the navigator runs and assumes (not what the sensor does)."""
+
+    methods: tuple[str, ...]
+    sigma_bearing: float  # assumed per-component bearing noise (~rad)
+    sigma_range_m: float  # assumed range noise (m)
+    step_tol_m: float  # Gauss-Newton stops below this position step (m)
+    max_iterations: int
+    robust: RobustOptions | None  # RANSAC + chi-square gate, or None
+    cap: int | None  # the detection cap the craters were selected under (recorded per row)
+
+
+def estimate_all(craters: UsedCraters, opts: EstimateOptions, seed: int, advance=None
+                 ) -> pl.DataFrame:
+    """Every method on every frame, each method warm-started from its own previous estimate."""
+    robust = opts.robust
+    rows: list[dict[str, Any]] = []
+    for m_index, method in enumerate(opts.methods):
+        prior = None
+        for i, frame in enumerate(craters.frame):
+            a, b = craters.start[i], craters.start[i + 1]
+            rng = None
+            if robust is not None:
+                ss = np.random.SeedSequence(seed, spawn_key=(_STREAM_TAG, int(frame), m_index))
+                rng = np.random.Generator(np.random.PCG64(ss))
+            t0 = time.perf_counter()
+            est = estimate_pose(method, craters.c_mci_m[a:b], craters.u_body[a:b],
+                                craters.rho_m[a:b], sigma_bearing=opts.sigma_bearing,
+                                sigma_range_m=opts.sigma_range_m, r_prior_mci_m=prior,
+                                step_tol_m=opts.step_tol_m, max_iterations=opts.max_iterations,
+                                robust=robust, rng=rng)
+            solve_ms = (time.perf_counter() - t0) * 1e3
+            prior = est.r_mci_m if est.status == "ok" else None
+            rows.append(_row(int(frame), float(craters.t_s[i]), method, est, solve_ms,
+                             craters, a, b))
+            if advance is not None:
+                advance()
+    return _table(rows, opts.cap)
+
+
+def _row(frame: int, t_s: float, method: str, est: PoseEstimate, solve_ms: float,
+         craters: UsedCraters, a: int, b: int) -> dict[str, Any]:
+    """A table row; `rejected` are the craters a fit dropped as outliers (rows with non-finite
+    measurements, which no estimator can use, are not counted as outliers)."""
+    finite = (np.all(np.isfinite(craters.c_mci_m[a:b]), axis=1)
+              & np.all(np.isfinite(craters.u_body[a:b]), axis=1)
+              & np.isfinite(craters.rho_m[a:b]))
+    rejected = finite & ~est.inliers if est.status == "ok" else np.zeros(b - a, bool)
+    return {"frame": frame, "t_s": t_s, "method": method, "status": est.status,
+            "r": est.r_mci_m, "q": est.q_mci_from_body, "cov": est.cov,
+            "att_cov_quest": est.att_cov_quest, "n_used": b - a,
+            "n_rejected": int(rejected.sum()),
+            "rejected_ids": craters.matched_id[a:b][rejected].tolist(),
+            "rejected_det_index": craters.det_index[a:b][rejected].tolist(),
+            "iterations": est.iterations, "solve_ms": solve_ms}
+
+
+def _table(rows: list[dict[str, Any]], cap: int | None) -> pl.DataFrame:
+    r = np.array([row["r"] for row in rows]).reshape(-1, 3)
+    q = np.array([row["q"] for row in rows]).reshape(-1, 4)
+    cov = np.array([row["cov"] for row in rows]).reshape(-1, 6, 6)
+    sigma = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+    return pl.DataFrame({
+        "frame": pl.Series([row["frame"] for row in rows], dtype=pl.Int32),
+        "t_s": [row["t_s"] for row in rows],
+        "method": [row["method"] for row in rows],
+        "cap": pl.Series([cap] * len(rows), dtype=pl.Int64),
+        "status": [row["status"] for row in rows],
+        **xyz_columns("r_mci", "_m", r), **quat_columns("q_mci_from_body", q),
+        **xyz_columns("sigma_pos", "_m", sigma[:, :3]),
+        **xyz_columns("sigma_att", "_rad", sigma[:, 3:]),
+        "cov": pl.Series(cov.reshape(-1, 36), dtype=pl.Array(pl.Float64, 36)),
+        "att_cov_quest": pl.Series(np.array([row["att_cov_quest"] for row in rows]).reshape(-1, 9),
+                                   dtype=pl.Array(pl.Float64, 9)),
+        "n_used": pl.Series([row["n_used"] for row in rows], dtype=pl.Int64),
+        "n_rejected": pl.Series([row["n_rejected"] for row in rows], dtype=pl.Int64),
+        "rejected_ids": pl.Series([row["rejected_ids"] for row in rows], dtype=pl.List(pl.Int64)),
+        "rejected_det_index": pl.Series([row["rejected_det_index"] for row in rows],
+                                        dtype=pl.List(pl.Int32)),
+        "iterations": pl.Series([row["iterations"] for row in rows], dtype=pl.Int32),
+        "solve_ms": [row["solve_ms"] for row in rows],
+    })
