@@ -34,6 +34,10 @@ estimate *args:
 score *args:
     {{py}} score "$@"
 
+# the stages as declared: config, inputs, outputs and the code each is keyed on
+stages:
+    {{py}} stages
+
 # the crater-cap sweep: the paper's Table 1 (caps x methods x seeds)
 sweep *args:
     {{py}} sweep "$@"

@@ -43,14 +43,24 @@ def ingest(
     scenario: Scenario = "default",
     run_id: RunId = None,
     source: Annotated[str | None, typer.Option(help="Catalogue file (or 'synthetic').")] = None,
-    format: Annotated[str | None, typer.Option(help="Format name in catalogue/sources.toml "
-                                                    "(default: detect from the header).")] = None,
-    db: Annotated[str | None, typer.Option(help="DuckDB file to build.")] = None,
+    format: Annotated[str | None, typer.Option(help="Format name in catalogue/sources.toml or "
+                                                    "catalogue/formats.local.toml (default: "
+                                                    "detect from the header).")] = None,
+    db: Annotated[str | None, typer.Option(help="DuckDB file to build (default for a --source "
+                                                "file: catalogue/<file stem>.duckdb).")] = None,
     max_reject_share: Annotated[float | None, typer.Option(help="Fail above this share of "
                                                                 "rejected rows.")] = None,
     force: Force = False,
 ) -> None:
-    """Ingest a crater catalogue into the tiled DuckDB database (and ingest.rrd)."""
+    """Ingest a crater catalogue into a tiled DuckDB database (and its recording beside it).
+
+    A --source file goes to its own database and run (catalogue/<stem>.duckdb, runs/<stem>/)
+    unless --db / --run-id say otherwise: the default catalogue is never replaced by accident."""
+    from pipeline.io.catalogue_db import default_db_path
+
+    if source is not None and source != "synthetic" and db is None:
+        db = default_db_path(source)
+        run_id = run_id or Path(db).stem
     given = {"source": source, "format": format, "db_path": db,
              "max_reject_share": max_reject_share}
     overrides = {"catalogue": {k: v for k, v in given.items() if v is not None}}
@@ -132,7 +142,8 @@ def sql(
     format: Annotated[str, typer.Option("--format", help="table, csv or markdown.")] = "table",
     max_rows: Annotated[int, typer.Option(
         help="Rows of a table printed on a terminal (piped output is never cut).")] = 40,
-    timeout_s: Annotated[float, typer.Option(help="Stop the query after this long.")] = 60.0,
+    timeout_s: Annotated[float, typer.Option(
+        help="Stop the query after this many seconds.")] = 60.0,
 ) -> None:
     """Run read-only SQL over the crater catalogue (as `craters`) and a run's tables."""
     from pipeline.io.sqlshell import run_query
@@ -172,6 +183,20 @@ def view(
     args = [viewer.rerun_executable(), *viewer.viewer_args(files, catalogue)]
     typer.echo(" ".join(args))
     os.execv(args[0], args)
+
+@app.command()
+def stages() -> None:
+    """The stages as declared: what each reads (config, artifacts), writes and is keyed on."""
+    from pipeline.engine.fingerprint import closure
+    from pipeline.stages import DAG
+
+    for name in DAG.order:
+        s = DAG[name]
+        upstream = ", ".join(DAG.upstream[name]) or "-"
+        typer.echo(f"{name}: {s.doc}\n  config:  {', '.join(s.reads)}\n"
+                   f"  inputs:  {', '.join(s.inputs) or '-'} (from {upstream})\n"
+                   f"  outputs: {', '.join(s.outputs)}\n  code:    {', '.join(closure(s.code))}")
+
 
 @app.command()
 def bench(

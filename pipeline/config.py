@@ -1,9 +1,19 @@
 """Run configuration: frozen dataclasses, one per stage, loaded from TOML scenarios.
 
-A scenario is `runs/scenarios/<name>.toml`. `default.toml` lists every key (the paper's case);
-another scenario starts with `extends = "default"` and lists only what it changes. Unknown keys,
-wrong types and out-of-range values are `ConfigError`s that name the file and the key.
-Units are in the field names; degrees and km appear only here, at the edge.
+A scenario is `<workspace>/runs/scenarios/<name>.toml` (see `pipeline.io.workspace`), or any
+`.toml` path (taken as given, relative to the working directory). `default.toml` lists every key
+(the paper's case); another scenario starts with `extends = "<name>"` (a plain scenario name of the
+workspace) and lists only what it changes.
+
+Everything is checked at the door, with one line that names the file and the key: unknown keys,
+wrong types, non-finite numbers (TOML allows `nan` and `inf`), values out of their range, and
+impossible combinations (an impact time the orbit cannot give, a periapsis above the apoapsis,
+frame rates that would need gigabytes, scoring windows after the impact, ...). Units are in the
+field names; degrees and km appear only here, at the edge.
+
+Truth and the navigator's assumptions are apart: `detection.sigma_*` is the noise the measurements
+get (truth); `estimation.assumed_sigma_*` is what the estimators assume ("truth": the same numbers).
+Stages read the latter through `RunConfig.navigator_sigmas()`.
 """
 
 from __future__ import annotations
@@ -11,26 +21,118 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
+import re
 import tomllib
 import types
 import typing
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pipeline.errors import ConfigError
+import numpy as np
 
-SCENARIO_DIR = Path("runs/scenarios")
+from pipeline.core import orbit, synthetic
+from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.errors import ConfigError
+from pipeline.io.workspace import workspace
+from pipeline.vocab import METHODS
 
 FOV_CONVENTIONS = ("corner_half_angle", "full_angle")
 SELECTIONS = ("random", "largest", "nearest", "spread")
-METHODS = ("paper", "joint")
+
 DIAM_UNITS = ("km", "m")
+
+# --- limits (each a bound on what a run can sensibly ask for) -------------------------------------
+
+MAX_FRAMES = 1_000_000  # trajectory frames of one run (~170 B each in the trajectory table alone)
+TRAJECTORY_BYTES_PER_FRAME = 170  # 21 columns, mostly float64
+MAX_JITTER_KNOTS = 1_000_000  # knots of the pointing-jitter rate over its horizon
+MAX_SYNTHETIC_CRATERS = 20_000_000  # synthetic catalogue rows (~10x the paper's 2.03 M database)
+PROPAGATION_LIMIT_S = 86_400.0  # orbit.propagate_descent's default t_max_s: no contact by then
+MAX_APOAPSIS_ALT_KM = 50_000.0  # inside the Moon's Hill sphere (~60,000 km): two-body holds
+MOON_DIAMETER_KM = 2 * MOON_RADIUS_M / 1e3
+MAX_SWEEP_TASKS = 10_000  # caps x seeds (each task is a full detect-and-estimate pass)
+MAX_WORKERS = 256
+MAX_SEED = 2**63 - 1  # TOML integers are signed 64-bit
+# Measurement noise below the double-precision rounding of the quantities themselves (unit
+# bearings ~1e-16, ranges of ~1e6 m ~1e-10 m), with a margin of ~1e4, would make the estimators'
+# 1/sigma^2 weights and chi-square tests treat rounding error as signal.
+SIGMA_BEARING_RANGE = (1e-12, 1.0)  # rad per component of the unit bearing
+SIGMA_RANGE_M_RANGE = (1e-6, 1e6)  # m
+# A condition number above ~1/eps (4.5e15) is rounding noise: collinear craters give 1e15 or more.
+MAX_CONDITION_LIMIT = 1e15
+
+_PLAIN_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
+_RESERVED_RUN_IDS = ("scenarios",)  # runs/scenarios/ holds the scenario files
 
 
 def _check(cond: bool, key: str, message: str) -> None:
+    """A ConfigError `key: message` (or `key = value ...` for a message starting with "= ")."""
     if not cond:
-        raise ConfigError(f"{key}: {message}")
+        raise ConfigError(f"{key} {message}" if message.startswith("= ") else f"{key}: {message}")
+
+
+def _fmt(value: Any) -> str:
+    return f"{value:g}" if isinstance(value, float) else repr(value)
+
+
+def _num(value: float | int, key: str, lo: float | None = None, hi: float | None = None, *,
+         lo_open: bool = False, hi_open: bool = False, unit: str = "", why: str = "") -> None:
+    """`value` is finite and inside [lo, hi] (ends open as asked), else a ConfigError naming key."""
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and lo is not None:
+        ok = value > lo if lo_open else value >= lo
+    if ok and hi is not None:
+        ok = value < hi if hi_open else value <= hi
+    if ok:
+        return
+    u = f" {unit}" if unit else ""
+    if lo is not None and hi is not None:
+        what = f"in {'(' if lo_open else '['}{_fmt(lo)}, {_fmt(hi)}{')' if hi_open else ']'}{u}"
+    elif lo is not None:
+        what = f"{'>' if lo_open else '>='} {_fmt(lo)}{u}"
+    elif hi is not None:
+        what = f"{'<' if hi_open else '<='} {_fmt(hi)}{u}"
+    else:
+        what = "finite"
+    raise ConfigError(f"{key} = {_fmt(value)}{u}: must be a finite number {what}"
+                      f"{f' ({why})' if why else ''}".replace("number finite", "number"))
+
+
+def _plain_name(name: Any, key: str, what: str) -> str:
+    """A name that is a single file-name component: letters, digits, '.', '_', '-'; at most 100
+    characters, starting with a letter or digit (so not '.', '..', hidden or option-like)."""
+    if not isinstance(name, str) or not _PLAIN_NAME.fullmatch(name):
+        raise ConfigError(f"{key} = {name!r}: {what} must be 1-100 characters of A-Z a-z 0-9 . _ -"
+                          f" starting with a letter or digit (no path, no '..')")
+    return name
+
+
+def validate_run_id(run_id: str) -> str:
+    """The run id (the folder under runs/), checked: a plain name (see `_plain_name`), not a
+    reserved folder of runs/. Returns it unchanged; raises a one-line ConfigError otherwise."""
+    _plain_name(run_id, "run_id", "a run id")
+    if run_id in _RESERVED_RUN_IDS:
+        raise ConfigError(f"run_id = {run_id!r}: reserved (runs/{run_id}/ is not a run folder)")
+    return run_id
+
+
+def validate_scenario_name(name: str) -> str:
+    """A bare scenario name (a file `<name>.toml` of the workspace's scenarios folder), checked."""
+    return _plain_name(name, "scenario", "a scenario name (or give a .toml path)")
+
+
+def impact_time_bounds_s(apoapsis_alt_km: float) -> tuple[float, float]:
+    """Open interval (s) of the impact times a fall from this apoapsis altitude (km) can have:
+    from the radial free fall (periapsis radius 0) to the half period (periapsis on the surface),
+    the range in which `orbit.periapsis_radius_for_impact` solves."""
+    ra = MOON_RADIUS_M + apoapsis_alt_km * 1e3
+    return (float(orbit.time_from_apoapsis_to_radius(ra, 0.0, MOON_RADIUS_M)),
+            float(orbit.time_from_apoapsis_to_radius(ra, MOON_RADIUS_M, MOON_RADIUS_M)))
+
+
+# --- sections -------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -39,7 +141,7 @@ class CatalogueConfig:
 
     source: str  # "synthetic", or the path of a catalogue file
     format: str  # "auto" (detect from the header) or a format name of catalogue/sources.toml
-    db_path: str  # DuckDB file the catalogue is built into
+    db_path: str  # DuckDB file the catalogue is built into (relative: to the workspace root)
     healpix_order: int  # HEALPix nested order of the `tile` column (nside = 2**order)
     max_reject_share: float | None  # None: the source format's own default
     synthetic_min_diam_km: float
@@ -47,15 +149,38 @@ class CatalogueConfig:
     seed: int  # seed of the synthetic generator
 
     def __post_init__(self) -> None:
-        _check(0 <= self.healpix_order <= 12, "catalogue.healpix_order", "must be in 0..12")
+        for key in ("source", "format", "db_path"):
+            value = getattr(self, key)
+            _check(bool(value.strip()) and "\0" not in value, f"catalogue.{key}",
+                   "must be a non-empty string")
+        _check(0 <= self.healpix_order <= 12, "catalogue.healpix_order",
+               f"= {self.healpix_order}: must be in 0..12 (nside 1..4096)")
         if self.max_reject_share is not None:
-            _check(0 <= self.max_reject_share <= 1, "catalogue.max_reject_share", "not in [0, 1]")
-        _check(self.seed >= 0, "catalogue.seed", "must be >= 0")
-        _check(
-            0 < self.synthetic_min_diam_km < self.synthetic_max_diam_km,
-            "catalogue.synthetic_min_diam_km",
-            "need 0 < synthetic_min_diam_km < synthetic_max_diam_km",
-        )
+            _num(self.max_reject_share, "catalogue.max_reject_share", 0.0, 1.0)
+        _num(self.seed, "catalogue.seed", 0, MAX_SEED)
+        _num(self.synthetic_min_diam_km, "catalogue.synthetic_min_diam_km", 0.0, lo_open=True,
+             unit="km")
+        _num(self.synthetic_max_diam_km, "catalogue.synthetic_max_diam_km", 0.0, MOON_DIAMETER_KM,
+             lo_open=True, unit="km", why="no crater is wider than the Moon")
+        _check(self.synthetic_min_diam_km < self.synthetic_max_diam_km,
+               "catalogue.synthetic_min_diam_km",
+               f"need 0 < synthetic_min_diam_km ({self.synthetic_min_diam_km:g}) < "
+               f"synthetic_max_diam_km ({self.synthetic_max_diam_km:g})")
+        if self.source == "synthetic":
+            n = self.synthetic_count()
+            _check(n <= MAX_SYNTHETIC_CRATERS, "catalogue.synthetic_min_diam_km",
+                   f"= {self.synthetic_min_diam_km:g} km makes ~{n:.3g} synthetic craters, above "
+                   f"the limit of {MAX_SYNTHETIC_CRATERS:,} (~{n * 100 / 1e9:.1f} GB at ~100 B a "
+                   f"crater); 0.77 km gives the paper's 2.03 M")
+            _check(n >= 0.5, "catalogue.synthetic_min_diam_km",
+                   f"{self.synthetic_min_diam_km:g}-{self.synthetic_max_diam_km:g} km holds "
+                   f"~{n:.2g} synthetic craters: the catalogue would be empty")
+
+    def synthetic_count(self) -> float:
+        """Expected number of synthetic craters between the two diameters (the generator's law)."""
+        diam_km = np.array([self.synthetic_min_diam_km, self.synthetic_max_diam_km])
+        n_min, n_max = synthetic.cumulative_count(diam_km)
+        return float(n_min - n_max)
 
 
 @dataclass(frozen=True)
@@ -79,22 +204,119 @@ class TrajectoryConfig:
     atol_m: float
 
     def __post_init__(self) -> None:
-        _check(self.apoapsis_alt_km > 0, "trajectory.apoapsis_alt_km", "must be > 0")
-        _check(self.impact_time_s > 0, "trajectory.impact_time_s", "must be > 0")
-        _check(self.frame_rate_hz > 0, "trajectory.frame_rate_hz", "must be > 0")
-        _check(self.start_s >= 0, "trajectory.start_s", "must be >= 0")
-        if self.end_s is not None:
-            _check(self.end_s > self.start_s, "trajectory.end_s", "must be > start_s")
-        _check(len(self.specific_force_body_m_s2) == 3, "trajectory.specific_force_body_m_s2",
+        k = "trajectory."
+        _num(self.apoapsis_alt_km, k + "apoapsis_alt_km", 0.0, MAX_APOAPSIS_ALT_KM, lo_open=True,
+             unit="km", why="inside the Moon's Hill sphere, where a two-body descent holds")
+        _num(self.inclination_deg, k + "inclination_deg", 0.0, 180.0, unit="deg")
+        _num(self.raan_deg, k + "raan_deg", -360.0, 360.0, unit="deg")
+        _num(self.arg_periapsis_deg, k + "arg_periapsis_deg", -360.0, 360.0, unit="deg")
+        _num(self.impact_time_s, k + "impact_time_s", 0.0, lo_open=True, unit="s")
+        _check(len(self.specific_force_body_m_s2) == 3, k + "specific_force_body_m_s2",
                "needs 3 components")
-        _check(self.jitter_rate_sigma_rad_s >= 0, "trajectory.jitter_rate_sigma_rad_s", "< 0")
-        _check(self.jitter_knot_s > 0, "trajectory.jitter_knot_s", "must be > 0")
-        _check(self.jitter_seed >= 0, "trajectory.jitter_seed", "must be >= 0")
+        for i, f in enumerate(self.specific_force_body_m_s2):
+            _num(f, f"{k}specific_force_body_m_s2[{i}]", -100.0, 100.0, unit="m/s^2",
+                 why="10 g; the Moon's surface gravity is 1.62 m/s^2")
+        ra_km = MOON_RADIUS_M / 1e3 + self.apoapsis_alt_km
+        if self.periapsis_radius_km is None:
+            lo, hi = impact_time_bounds_s(self.apoapsis_alt_km)
+            _check(lo < PROPAGATION_LIMIT_S, k + "apoapsis_alt_km",
+                   f"= {self.apoapsis_alt_km:g} km: even the radial free fall takes {lo:.0f} s, "
+                   f"beyond the propagator's {PROPAGATION_LIMIT_S:.0f} s limit")
+            cap = (f" and within the propagator's {PROPAGATION_LIMIT_S:.0f} s limit"
+                   if hi > PROPAGATION_LIMIT_S else "")
+            _check(lo < self.impact_time_s < hi and self.impact_time_s <= PROPAGATION_LIMIT_S,
+                   k + "impact_time_s",
+                   f"= {self.impact_time_s:g} s is impossible from a {self.apoapsis_alt_km:g} km "
+                   f"apoapsis: the admissible impact times lie strictly between the radial free "
+                   f"fall ({lo:.3f} s) and the half period ({hi:.3f} s){cap}")
+        else:
+            rp = self.periapsis_radius_km
+            _check(not rp >= ra_km, k + "periapsis_radius_km",
+                   f"= {rp:g} km is not below the apoapsis radius ({ra_km:g} km = "
+                   f"{MOON_RADIUS_M / 1e3:g} + apoapsis_alt_km {self.apoapsis_alt_km:g})")
+            _num(rp, k + "periapsis_radius_km", 0.0, ra_km, lo_open=True, hi_open=True, unit="km",
+                 why=f"between the centre and the apoapsis radius {ra_km:g} km")
+            if not self.has_thrust:
+                _check(rp < MOON_RADIUS_M / 1e3, k + "periapsis_radius_km",
+                       f"= {rp:g} km is not below the Moon's radius ({MOON_RADIUS_M / 1e3:g} km): "
+                       "without thrust the orbit never reaches the surface")
+        impact = self.ballistic_impact_s()
+        if impact is not None:
+            _check(impact <= PROPAGATION_LIMIT_S, k + "apoapsis_alt_km",
+                   f"impact after {impact:.0f} s, beyond the propagator's "
+                   f"{PROPAGATION_LIMIT_S:.0f} s limit")
+        _num(self.frame_rate_hz, k + "frame_rate_hz", 0.0, lo_open=True, unit="Hz")
+        _num(self.start_s, k + "start_s", 0.0, PROPAGATION_LIMIT_S, unit="s")
+        if impact is not None:
+            _check(self.start_s < impact, k + "start_s",
+                   f"= {self.start_s:g} s is not before the impact at {impact:.3f} s")
+        if self.end_s is not None:
+            _num(self.end_s, k + "end_s", 0.0, PROPAGATION_LIMIT_S, unit="s")
+            _check(self.end_s > self.start_s, k + "end_s",
+                   f"= {self.end_s:g} s must be > start_s ({self.start_s:g} s)")
+        n = self.frame_count_estimate()
+        span_end = "impact" if self.end_s is None else f"{self.end_s:g} s"
+        _check(n <= MAX_FRAMES, k + "frame_rate_hz",
+               f"= {self.frame_rate_hz:g} Hz from start_s {self.start_s:g} s to {span_end} makes "
+               f"~{n:.3g} frames, above the limit of {MAX_FRAMES:,} (~"
+               f"{n * TRAJECTORY_BYTES_PER_FRAME / 1e9:.3g} GB for the trajectory table alone)")
+        _num(self.jitter_rate_sigma_rad_s, k + "jitter_rate_sigma_rad_s", 0.0, 1.0, unit="rad/s")
+        _num(self.jitter_knot_s, k + "jitter_knot_s", 0.0, PROPAGATION_LIMIT_S, lo_open=True,
+             unit="s")
+        if self.jitter_rate_sigma_rad_s > 0:
+            knots = self.jitter_horizon_s() / self.jitter_knot_s + 1
+            _check(knots <= MAX_JITTER_KNOTS, k + "jitter_knot_s",
+                   f"= {self.jitter_knot_s:g} s makes ~{knots:.3g} jitter knots over "
+                   f"{self.jitter_horizon_s():g} s, above the limit of {MAX_JITTER_KNOTS:,}")
+        _num(self.jitter_seed, k + "jitter_seed", 0, MAX_SEED)
+        _num(self.rtol, k + "rtol", 1e-13, 1e-3, why="DOP853 cannot go below ~100 eps")
+        _num(self.atol_m, k + "atol_m", 1e-9, 1e3, unit="m")
+
+    @property
+    def has_thrust(self) -> bool:
+        """Whether a thrust specific force is set (then the impact time is known only after the
+        propagation)."""
+        return any(f != 0.0 for f in self.specific_force_body_m_s2)
+
+    def ballistic_impact_s(self) -> float | None:
+        """Time (s) from the apoapsis to surface contact without thrust: impact_time_s when the
+        periapsis is solved, else Kepler's time on the given ellipse; None with thrust (the
+        propagation decides)."""
+        if self.has_thrust:
+            return None
+        if self.periapsis_radius_km is None:
+            return self.impact_time_s
+        ra = MOON_RADIUS_M + self.apoapsis_alt_km * 1e3
+        return float(orbit.time_from_apoapsis_to_radius(ra, self.periapsis_radius_km * 1e3,
+                                                        MOON_RADIUS_M))
+
+    def frame_count_estimate(self) -> float:
+        """Frames k / frame_rate_hz in [start_s, min(end_s, impact)] (the propagation limit stands
+        in for an impact unknown before the propagation); a float, as it may be astronomical."""
+        impact = self.ballistic_impact_s()
+        end = PROPAGATION_LIMIT_S if impact is None else impact
+        if self.end_s is not None:
+            end = min(end, self.end_s)
+        hi, lo = end * self.frame_rate_hz, self.start_s * self.frame_rate_hz
+        if not math.isfinite(hi):
+            return math.inf
+        return float(max(math.floor(hi) - math.ceil(lo) + 1, 0))
+
+    def jitter_horizon_s(self) -> float:
+        """The span (s) the jitter rate's knots must cover (the rate is held beyond the last knot):
+        twice the ballistic impact time, or the propagation limit with thrust. Equal to the old
+        `2 * impact_time_s` when the periapsis is solved without thrust; right also when the
+        periapsis is given (impact_time_s is then ignored)."""
+        impact = self.ballistic_impact_s()
+        return PROPAGATION_LIMIT_S if impact is None else 2.0 * impact
 
 
 @dataclass(frozen=True)
 class DetectionConfig:
-    """Camera, visibility, identification and measurements (stage `detect`), paper Sec. 3.4-3.5."""
+    """Camera, visibility, identification and measurements (stage `detect`), paper Sec. 3.4-3.5.
+
+    The sigmas are the truth: the noise the measurements get. What the navigator assumes is
+    `EstimationConfig.assumed_sigma_*` (`RunConfig.navigator_sigmas()`)."""
 
     fov_deg: float
     fov_convention: str  # corner_half_angle (corners fov_deg off boresight) | full_angle
@@ -110,28 +332,38 @@ class DetectionConfig:
     sigma_range_m: float
 
     def __post_init__(self) -> None:
-        _check(0 < self.fov_deg < 180, "detection.fov_deg", "must be in (0, 180)")
-        _check(self.fov_convention in FOV_CONVENTIONS, "detection.fov_convention",
+        k = "detection."
+        _check(self.fov_convention in FOV_CONVENTIONS, k + "fov_convention",
                f"must be one of {FOV_CONVENTIONS}")
-        if self.fov_convention == "corner_half_angle":
-            _check(self.fov_deg < 90, "detection.fov_deg", "corner half-angle must be < 90")
-        _check(self.image_size_px > 0, "detection.image_size_px", "must be > 0")
-        _check(self.visibility_diam_unit in DIAM_UNITS, "detection.visibility_diam_unit",
+        limit = 90.0 if self.fov_convention == "corner_half_angle" else 180.0
+        _num(self.fov_deg, k + "fov_deg", 0.0, limit, lo_open=True, hi_open=True, unit="deg",
+             why=f"{self.fov_convention}")
+        _num(self.image_size_px, k + "image_size_px", 1, 100_000, unit="px")
+        _check(self.visibility_diam_unit in DIAM_UNITS, k + "visibility_diam_unit",
                f"must be one of {DIAM_UNITS}")
-        _check(0 <= self.p_identify <= 1, "detection.p_identify", "not in [0, 1]")
+        a_max = 1e4 if self.visibility_diam_unit == "km" else 1e7  # 10,000 km: wider than the Moon
+        _num(self.visibility_a, k + "visibility_a", 0.0, a_max, unit=self.visibility_diam_unit,
+             why="Eq. 9's diameter at zero altitude")
+        _num(self.visibility_b_per_km, k + "visibility_b_per_km", 0.0, 1.0, unit="1/km",
+             why="exp(b h) grows with altitude; 1/km already hides everything above ~20 km")
+        _num(self.p_identify, k + "p_identify", 0.0, 1.0)
         if self.max_craters is not None:
-            _check(self.max_craters >= 1, "detection.max_craters", "must be >= 1 or \"none\"")
-        _check(self.selection in SELECTIONS, "detection.selection", f"must be one of {SELECTIONS}")
-        _check(0 <= self.false_match_share <= 1, "detection.false_match_share", "not in [0, 1]")
+            _check(self.max_craters >= 1, k + "max_craters", "must be >= 1 or \"none\"")
+            _num(self.max_craters, k + "max_craters", 1, 1_000_000)
+        _check(self.selection in SELECTIONS, k + "selection", f"must be one of {SELECTIONS}")
+        _num(self.false_match_share, k + "false_match_share", 0.0, 1.0)
         # The estimators weight measurements by 1 / sigma^2: noise-free measurements are not a
         # case they (or the Cramér-Rao bound) can handle.
-        _check(self.sigma_bearing > 0, "detection.sigma_bearing", "must be > 0")
-        _check(self.sigma_range_m > 0, "detection.sigma_range_m", "must be > 0")
+        _num(self.sigma_bearing, k + "sigma_bearing", *SIGMA_BEARING_RANGE, unit="rad")
+        _num(self.sigma_range_m, k + "sigma_range_m", *SIGMA_RANGE_M_RANGE, unit="m")
+
+
+_TRUTH = {"literal": "truth"}  # field metadata: the TOML string "truth" stands for None
 
 
 @dataclass(frozen=True)
 class EstimationConfig:
-    """Pose estimation (stage `estimate`), paper Sec. 4 and beyond."""
+    """Pose estimation (stage `estimate`), paper Sec. 4 and beyond: the navigator's side."""
 
     methods: tuple[str, ...]  # paper | joint
     robust: bool  # RANSAC + chi-square gate against false matches
@@ -140,16 +372,34 @@ class EstimationConfig:
     gate_probability: float  # chi-square gate of the robust step (per-crater residual)
     ransac_max_hypotheses: int
     ransac_confidence: float
+    # What the navigator assumes of the measurement noise; None ("truth"): detection.sigma_*.
+    assumed_sigma_bearing: float | None = field(metadata=_TRUTH)
+    assumed_sigma_range_m: float | None = field(metadata=_TRUTH)
+    consistency_probability: float  # chi-square probability beyond which a fix is `inconsistent`
+    max_condition: float  # largest accepted (Jacobi-scaled) condition number of the geometry
 
     def __post_init__(self) -> None:
-        _check(len(self.methods) > 0, "estimation.methods", "needs at least one method")
+        k = "estimation."
+        _check(len(self.methods) > 0, k + "methods", "needs at least one method")
         for m in self.methods:
-            _check(m in METHODS, "estimation.methods", f"unknown method {m!r}, known {METHODS}")
-        _check(self.step_tol_m > 0, "estimation.step_tol_m", "must be > 0")
-        _check(self.max_iterations >= 1, "estimation.max_iterations", "must be >= 1")
-        _check(0 < self.gate_probability < 1, "estimation.gate_probability", "not in (0, 1)")
-        _check(self.ransac_max_hypotheses >= 1, "estimation.ransac_max_hypotheses", ">= 1")
-        _check(0 < self.ransac_confidence < 1, "estimation.ransac_confidence", "not in (0, 1)")
+            _check(m in METHODS, k + "methods", f"unknown method {m!r}, known {METHODS}")
+        _check(len(set(self.methods)) == len(self.methods), k + "methods", "methods repeat")
+        _num(self.step_tol_m, k + "step_tol_m", 0.0, 1e3, lo_open=True, unit="m")
+        _num(self.max_iterations, k + "max_iterations", 1, 10_000)
+        _num(self.gate_probability, k + "gate_probability", 0.0, 1.0, lo_open=True, hi_open=True)
+        _num(self.ransac_max_hypotheses, k + "ransac_max_hypotheses", 1, 1_000_000)
+        _num(self.ransac_confidence, k + "ransac_confidence", 0.0, 1.0, lo_open=True,
+             hi_open=True)
+        if self.assumed_sigma_bearing is not None:
+            _num(self.assumed_sigma_bearing, k + "assumed_sigma_bearing", *SIGMA_BEARING_RANGE,
+                 unit="rad", why='or "truth"')
+        if self.assumed_sigma_range_m is not None:
+            _num(self.assumed_sigma_range_m, k + "assumed_sigma_range_m", *SIGMA_RANGE_M_RANGE,
+                 unit="m", why='or "truth"')
+        _num(self.consistency_probability, k + "consistency_probability", 0.0, 1.0, lo_open=True,
+             hi_open=True)
+        _num(self.max_condition, k + "max_condition", 1.0, MAX_CONDITION_LIMIT, lo_open=True,
+             why="above ~1/eps double precision cannot tell a degenerate geometry")
 
 
 @dataclass(frozen=True)
@@ -161,7 +411,12 @@ class Window:
     end_s: float
 
     def __post_init__(self) -> None:
-        _check(self.end_s > self.start_s, f"scoring.windows[{self.name}]", "end_s <= start_s")
+        key = f"scoring.windows[{self.name}]"
+        _check(bool(self.name.strip()), "scoring.windows", "a window needs a non-empty name")
+        _num(self.start_s, f"{key}.start_s", 0.0, PROPAGATION_LIMIT_S, unit="s")
+        _num(self.end_s, f"{key}.end_s", 0.0, PROPAGATION_LIMIT_S, unit="s")
+        _check(self.end_s > self.start_s, key, f"end_s ({self.end_s:g} s) <= start_s "
+                                               f"({self.start_s:g} s)")
 
 
 @dataclass(frozen=True)
@@ -175,8 +430,10 @@ class ScoringConfig:
     def __post_init__(self) -> None:
         names = [w.name for w in self.windows]
         _check(len(set(names)) == len(names), "scoring.windows", "window names must be unique")
-        _check(self.table_window in names, "scoring.table_window", f"not one of {names}")
-        _check(self.final_window_s > 0, "scoring.final_window_s", "must be > 0")
+        _check(self.table_window in names, "scoring.table_window",
+               f"= {self.table_window!r}: not one of {names}")
+        _num(self.final_window_s, "scoring.final_window_s", 0.0, PROPAGATION_LIMIT_S,
+             lo_open=True, unit="s")
 
     @property
     def table(self) -> Window:
@@ -194,14 +451,25 @@ class SweepConfig:
     workers: int
 
     def __post_init__(self) -> None:
-        _check(len(self.caps) > 0 and len(self.seeds) > 0, "sweep", "needs caps and seeds")
+        _check(len(self.caps) > 0, "sweep.caps", "needs at least one cap")
+        _check(len(self.seeds) > 0, "sweep.seeds", "needs at least one seed")
+        _check(len(self.methods) > 0, "sweep.methods", "needs at least one method")
         for m in self.methods:
-            _check(m in METHODS, "sweep.methods", f"unknown method {m!r}")
-        _check(all(s >= 0 for s in self.seeds), "sweep.seeds", "seeds must be >= 0")
+            _check(m in METHODS, "sweep.methods", f"unknown method {m!r}, known {METHODS}")
+        _check(len(set(self.methods)) == len(self.methods), "sweep.methods", "methods repeat")
+        for i, s in enumerate(self.seeds):
+            _num(s, f"sweep.seeds[{i}]", 0, MAX_SEED)
         _check(len(set(self.seeds)) == len(self.seeds), "sweep.seeds", "seeds must be distinct")
         _check(len(set(self.caps)) == len(self.caps), "sweep.caps", "caps must be distinct")
-        _check(all(c is None or c >= 1 for c in self.caps), "sweep.caps", "caps must be >= 1")
-        _check(self.workers >= 1, "sweep.workers", "must be >= 1")
+        for i, c in enumerate(self.caps):
+            if c is not None:
+                _check(c >= 1, "sweep.caps", "caps must be >= 1")
+                _num(c, f"sweep.caps[{i}]", 1, 1_000_000)
+        tasks = len(self.caps) * len(self.seeds)
+        _check(tasks <= MAX_SWEEP_TASKS, "sweep.seeds",
+               f"{len(self.caps)} caps x {len(self.seeds)} seeds = {tasks:,} runs, above the "
+               f"limit of {MAX_SWEEP_TASKS:,}")
+        _num(self.workers, "sweep.workers", 1, MAX_WORKERS)
 
 
 @dataclass(frozen=True)
@@ -219,22 +487,46 @@ class RunConfig:
     sweep: SweepConfig
 
     def __post_init__(self) -> None:
-        _check(self.seed >= 0, "seed", "must be >= 0")
+        _num(self.seed, "seed", 0, MAX_SEED)
+        validate_run_id(self.run_id)
+        # Cross-section: what the scoring needs of the trajectory (known without thrust).
+        impact = self.trajectory.ballistic_impact_s()
+        if impact is not None:
+            for w in self.scoring.windows:
+                _check(w.start_s < impact, f"scoring.windows[{w.name}].start_s",
+                       f"= {w.start_s:g} s is not before the impact at {impact:.3f} s: the window "
+                       "would hold no frame")
+            _check(self.scoring.final_window_s <= impact, "scoring.final_window_s",
+                   f"= {self.scoring.final_window_s:g} s is longer than the descent "
+                   f"({impact:.3f} s)")
+
+    def navigator_sigmas(self) -> tuple[float, float]:
+        """(sigma_bearing ~rad, sigma_range_m m) the estimators assume: estimation.assumed_sigma_*,
+        or the truth (detection.sigma_*) where they are "truth". Weights, covariances, gates."""
+        e, d = self.estimation, self.detection
+        return (d.sigma_bearing if e.assumed_sigma_bearing is None else e.assumed_sigma_bearing,
+                d.sigma_range_m if e.assumed_sigma_range_m is None else e.assumed_sigma_range_m)
 
 
 # --- loading -------------------------------------------------------------------------------------
 
 
-def _coerce(value: Any, tp: Any, key: str) -> Any:
-    """Convert a TOML value to the annotated type `tp`, or raise a ConfigError naming `key`."""
+def _coerce(value: Any, tp: Any, key: str, literal: str | None = None) -> Any:
+    """Convert a TOML value to the annotated type `tp`, or raise a ConfigError naming `key`.
+
+    An optional field takes "none" for None, or its own `literal` (e.g. "truth") instead."""
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(tp) if a is not type(None)]
-        if isinstance(value, str) and value.lower() == "none":
-            return None
+        word = literal or "none"
+        if isinstance(value, str):
+            if value.lower() == word:
+                return None
+            if args[0] is not str:
+                raise ConfigError(f"{key}: expected a number or \"{word}\", got {value!r}")
         return _coerce(value, args[0], key)
     if origin is tuple:
-        if not isinstance(value, list):
+        if not isinstance(value, list | tuple):
             raise ConfigError(f"{key}: expected a list, got {value!r}")
         (item_tp, _ellipsis) = typing.get_args(tp)
         return tuple(_coerce(v, item_tp, f"{key}[{i}]") for i, v in enumerate(value))
@@ -253,6 +545,9 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(f"{key}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{key} = {value!r}: must be a finite number (nan and inf are "
+                              "refused)")
         return float(value)
     if tp is str:
         if not isinstance(value, str):
@@ -263,7 +558,8 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
 
 def _build(cls: type, data: dict[str, Any], where: str) -> Any:
     hints = typing.get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls)]
+    fields = dataclasses.fields(cls)
+    names = [f.name for f in fields]
     section = where or "top level"
     unknown = sorted(set(data) - set(names))
     if unknown:
@@ -272,7 +568,8 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
     if missing:
         raise ConfigError(f"{section}: missing key(s) {missing}")
     prefix = f"{where}." if where else ""
-    kwargs = {n: _coerce(data[n], hints[n], f"{prefix}{n}") for n in names}
+    kwargs = {f.name: _coerce(data[f.name], hints[f.name], f"{prefix}{f.name}",
+                              f.metadata.get("literal")) for f in fields}
     return cls(**kwargs)
 
 
@@ -284,11 +581,12 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 
 def scenario_path(name_or_path: str) -> Path:
-    """`runs/scenarios/<name>.toml` for a bare name, else the path as given."""
+    """A `.toml` path as given (relative to the working directory); a bare name is the file
+    `<name>.toml` of the workspace's scenarios folder (whatever the working directory)."""
     p = Path(name_or_path)
     if p.suffix == ".toml":
         return p
-    return SCENARIO_DIR / f"{name_or_path}.toml"
+    return workspace().scenarios_dir / f"{validate_scenario_name(name_or_path)}.toml"
 
 
 _DERIVED_KEYS = ("name", "run_id")  # set by load_config, never by a scenario file
@@ -313,32 +611,45 @@ def _check_keys(cls: type, data: dict[str, Any], where: str) -> None:
                     _check_keys(item, v, key)
 
 
+def _known_scenarios() -> list[str]:
+    return sorted(q.stem for q in workspace().scenarios_dir.glob("*.toml"))
+
+
 def _read_scenario(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     if not path.is_file():
-        known = sorted(q.stem for q in SCENARIO_DIR.glob("*.toml"))
-        raise ConfigError(f"{path}: scenario not found (known scenarios: {known})")
+        raise ConfigError(f"{path}: scenario not found (known scenarios: {_known_scenarios()})")
     if path.resolve() in seen:
         raise ConfigError(f"{path}: `extends` forms a cycle")
     try:
         data = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read the scenario: {exc}") from exc
     parent = data.pop("extends", None)
     try:
         _check_keys(RunConfig, data, "")
+        if parent is not None:
+            _plain_name(parent, "extends", "a scenario name of the workspace")
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
     if parent is None:
         return data
-    return _merge(_read_scenario(scenario_path(parent), (*seen, path.resolve())), data)
+    # The parent is always a scenario of the workspace, wherever the child is.
+    parent_path = workspace().scenarios_dir / f"{parent}.toml"
+    return _merge(_read_scenario(parent_path, (*seen, path.resolve())), data)
 
 
 def load_config(scenario: str = "default", run_id: str | None = None,
                 overrides: dict[str, Any] | None = None) -> RunConfig:
-    """Load a scenario (a name under runs/scenarios/ or a .toml path) into a RunConfig.
+    """Load a scenario (a name of the workspace's runs/scenarios/ or a .toml path) into a RunConfig.
 
-    `overrides` is a nested dict merged over the file (how the CLI's options apply).
+    `overrides` is a nested dict merged over the file (how the CLI's options apply). `run_id`
+    (default: the scenario's name) is checked by `validate_run_id`. Every error is a one-line
+    ConfigError naming the file and the key.
     """
+    if run_id is not None:
+        validate_run_id(run_id)
     path = scenario_path(scenario)
     data = _read_scenario(path)
     try:
@@ -346,6 +657,12 @@ def load_config(scenario: str = "default", run_id: str | None = None,
     except ConfigError as exc:
         raise ConfigError(f"override: {exc}") from None
     data = _merge(data, overrides or {})
+    if run_id is None:
+        try:
+            validate_run_id(path.stem)
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: the scenario's name is not a valid run id; give one "
+                              f"(--run-id): {exc}") from None
     data = {**data, "name": path.stem, "run_id": run_id or path.stem}
     try:
         return _build(RunConfig, data, "")
@@ -354,8 +671,20 @@ def load_config(scenario: str = "default", run_id: str | None = None,
 
 
 def to_dict(cfg: Any) -> Any:
-    """Plain JSON-able dict of a config dataclass (None stays None)."""
-    return dataclasses.asdict(cfg)
+    """Plain JSON-able dict of a config dataclass (None stays None, except where a field has its
+    own literal: "truth" for the navigator's assumed sigmas, so config.json shows the intent)."""
+    if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type):
+        out = {}
+        for f in dataclasses.fields(cfg):
+            value = getattr(cfg, f.name)
+            literal = f.metadata.get("literal")
+            out[f.name] = literal if value is None and literal else to_dict(value)
+        return out
+    if isinstance(cfg, tuple | list):
+        return type(cfg)(to_dict(v) for v in cfg)
+    if isinstance(cfg, dict):
+        return {k: to_dict(v) for k, v in cfg.items()}
+    return cfg
 
 
 def config_hash(*parts: Any) -> str:

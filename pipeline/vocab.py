@@ -8,8 +8,9 @@ from enum import StrEnum
 
 from pipeline.core.status import STATUSES, Status
 
-__all__ = ["ATTITUDE", "ATTITUDE_MCI", "METHODS", "METHOD_COLORS", "POSITION", "QUANTITIES",
-           "STATUSES", "STATUS_CODES", "Method", "Quantity", "Status", "quantity"]
+__all__ = ["ATTITUDE", "ATTITUDE_MCI", "COUNT_COLORS", "CRLB_COLOR", "METHODS", "METHOD_COLORS",
+           "POSITION", "QUANTITIES", "STATE_DIM", "STATUSES", "STATUS_CODES", "STATUS_COLORS",
+           "Method", "Quantity", "Status", "hex_color", "method_color", "quantity"]
 
 
 class Method(StrEnum):
@@ -27,6 +28,29 @@ STATUS_CODES: dict[str, int] = {s: i for i, s in enumerate(STATUSES)}
 # RGB colours per method: recordings (0-255) and report figures (hex) use the same hue.
 METHOD_COLORS: dict[str, tuple[int, int, int]] = {"paper": (0, 170, 255), "joint": (40, 200, 110)}
 
+# Colours of statuses (plots of the status codes), of the crater counts and of the CRLB band.
+STATUS_COLORS: dict[str, tuple[int, int, int]] = {
+    "ok": (60, 200, 90), "too_few_craters": (240, 170, 0), "not_converged": (240, 90, 40),
+    "degenerate": (220, 40, 40), "ill_conditioned": (200, 60, 200),
+    "inconsistent": (150, 90, 230), "below_surface": (120, 120, 120)}
+COUNT_COLORS: dict[str, tuple[int, int, int]] = {
+    "candidates": (120, 110, 220), "visible": (175, 175, 175), "identified": (255, 200, 60),
+    "used": (255, 130, 0), "false_match": (230, 0, 230)}
+CRLB_COLOR: tuple[int, int, int] = (200, 200, 200)
+
+# Dimension of the pose state (3 position + 3 attitude): the expected NEES of an honest covariance.
+STATE_DIM = 6
+
+
+def method_color(method: str) -> tuple[int, int, int]:
+    """RGB of a method (white for one not in the vocabulary)."""
+    return METHOD_COLORS.get(method, (255, 255, 255))
+
+
+def hex_color(rgb: tuple[int, int, int]) -> str:
+    """The `#rrggbb` string of an RGB triple (0-255), for matplotlib."""
+    return "#{:02x}{:02x}{:02x}".format(*rgb)
+
 
 @dataclass(frozen=True)
 class Quantity:
@@ -35,6 +59,16 @@ class Quantity:
     name: str
     label: str
     unit: str  # "m" or "deg"
+
+    @property
+    def axis_label(self) -> str:
+        """Label with its unit, e.g. "X (m)", "roll phi (deg)"."""
+        return f"{self.label} ({self.unit})"
+
+    @property
+    def short(self) -> str:
+        """The axis letter or angle name without the unit, e.g. "x", "phi"."""
+        return self.name.split("_")[0]
 
 
 POSITION = (Quantity("x_m", "X", "m"), Quantity("y_m", "Y", "m"), Quantity("z_m", "Z", "m"))

@@ -19,10 +19,14 @@ from typer.testing import CliRunner
 
 from pipeline import bench, cli
 from pipeline.cli import app
+from pipeline.errors import PipelineError
+from pipeline.io.store import RunStore
+from pipeline.io.workspace import workspace
 
 COMMANDS = {"run", "ingest", "trajectory", "detect", "estimate", "score", "sweep", "sql", "view",
-            "bench"}
-RECORDINGS = ["detection.rrd", "estimation.rrd", "ingest.rrd", "scoring.rrd", "trajectory.rrd"]
+            "stages", "bench"}
+RECORDINGS = ["detect/detection.rrd", "estimate/estimation.rrd", "score/scoring.rrd",
+              "trajectory/trajectory.rrd"]
 # Six frames (1,900-1,950 s) over a 10 km synthetic catalogue: ~20 craters used per frame.
 TINY = """extends = "default"
 
@@ -67,10 +71,13 @@ def tiny(tmp_path_factory) -> Path:
     (root / "catalogue").mkdir()
     mp = pytest.MonkeyPatch()
     mp.chdir(root)
+    mp.setenv("CRATER_NAV_ROOT", str(root))
+    workspace.cache_clear()
     try:
         result = CliRunner().invoke(app, ["run", "tiny"], catch_exceptions=False)
     finally:
         mp.undo()
+        workspace.cache_clear()
     assert result.exit_code == 0, result.output
     (root / "headline.txt").write_text(result.output)
     return root
@@ -88,10 +95,25 @@ def test_help_lists_every_command():
     assert COMMANDS <= listed, listed
 
 
+def test_stages_lists_each_declaration_in_order():
+    from pipeline.stages import DAG
+
+    result = CliRunner().invoke(app, ["stages"])
+    assert result.exit_code == 0, result.output
+    heads = [line.split(":")[0] for line in result.output.splitlines()
+             if line and not line.startswith(" ")]
+    assert heads == list(DAG.order)
+    block = result.output.split("detect: ")[1].split("\nestimate: ")[0]
+    assert "inputs:  catalogue.json, trajectory.parquet (from ingest, trajectory)" in block
+    assert "outputs: detections.parquet, frames.parquet, detection.rrd" in block
+    assert "pipeline.ops.detect" in block and "pipeline.io.store" not in block
+
+
 def test_run_prints_the_folder_the_headline_and_how_to_look(tiny):
     text = (tiny / "headline.txt").read_text()
-    summary = pl.read_parquet(tiny / "runs" / "tiny" / "summary.parquet")
-    assert "run tiny: runs/tiny/ (report.md" in text
+    run_dir = tiny.resolve() / "runs" / "tiny"
+    summary = pl.read_parquet(run_dir / "score" / "summary.parquet")
+    assert f"run tiny: {run_dir}/ (report: {run_dir / 'score' / 'report.md'}; " in text
     for method in ("paper", "joint"):
         x = summary.filter(pl.col("method") == method, pl.col("window") == "1800-2400 s",
                            pl.col("quantity") == "x_m")["rmse"][0]
@@ -101,34 +123,41 @@ def test_run_prints_the_folder_the_headline_and_how_to_look(tiny):
 
 def test_sql_prints_a_table_of_a_runs_scores(tiny, monkeypatch):
     monkeypatch.chdir(tiny)
+    monkeypatch.setenv("CRATER_NAV_ROOT", str(tiny))
+    workspace.cache_clear()
     result = CliRunner().invoke(app, [
-        "sql", "--db", "catalogue/tiny.duckdb", "--run", "tiny",
-        "SELECT method, count(*) AS n_frames FROM scores GROUP BY method ORDER BY method"],
-        terminal_width=120)
+        "sql", "--run", "tiny", "--format", "csv",
+        "SELECT method, count(*) AS n_frames FROM scores GROUP BY method ORDER BY method"])
+    workspace.cache_clear()
     assert result.exit_code == 0, result.output
-    rows = [line.strip("│┃ ").replace("┃", "│").split("│")
-            for line in result.output.splitlines() if line.startswith(("│", "┃"))]
-    assert [[cell.strip() for cell in row] for row in rows] == [
-        ["method", "n_frames"], ["joint", "6"], ["paper", "6"]]
+    assert result.output.splitlines() == ["method,n_frames", "joint,6", "paper,6"]
 
 
-@pytest.mark.parametrize("screenshot", [None, "shot.png"])
-def test_view_opens_every_recording_of_the_run(tiny, monkeypatch, screenshot):
+@pytest.mark.parametrize("display", [None, ":0"])
+def test_view_opens_every_recording_of_the_run_with_the_catalogue(tiny, monkeypatch, display):
+    """With a display: the viewer opens the run's committed recordings with the catalogue's
+    recording attached as an asset. Without one: one line saying to use --screenshot."""
     calls = []
     monkeypatch.setattr(cli.os, "execv", lambda exe, args: calls.append((exe, args)))
-    monkeypatch.chdir(tiny)
-    extra = [] if screenshot is None else ["--screenshot", screenshot]
-    result = CliRunner().invoke(app, ["view", "tiny", *extra])
+    monkeypatch.setenv("CRATER_NAV_ROOT", str(tiny))
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    if display is None:
+        monkeypatch.delenv("DISPLAY", raising=False)
+    else:
+        monkeypatch.setenv("DISPLAY", display)
+    workspace.cache_clear()
+    result = CliRunner().invoke(app, ["view", "tiny"])
+    workspace.cache_clear()
+    if display is None:
+        assert isinstance(result.exception, PipelineError) and not calls
+        assert "--screenshot out.png" in str(result.exception)
+        return
     assert result.exit_code == 0, result.output
     [(exe, args)] = calls
     assert Path(exe).name == "rerun" and args[0] == exe
-    files = [str(Path("runs/tiny") / name) for name in RECORDINGS]
-    assert args[-len(files):] == files
-    if screenshot:
-        assert args[1:-len(files)] == ["--headless", "--bind", "127.0.0.1", "--window-size",
-                                       "1600x1000", "--screenshot-to", screenshot]
-    else:
-        assert len(args) == 1 + len(files)
+    files = [str(tiny / "runs" / "tiny" / name) for name in RECORDINGS]
+    assert sorted(args[-len(files):]) == sorted(files)
+    assert args[1:-len(files)] == ["--asset", str(tiny / "catalogue" / "tiny.rrd")]
     assert result.output.strip() == " ".join(args)
 
 
@@ -143,6 +172,9 @@ def test_a_stage_without_its_upstream_names_it_and_the_just_command(workdir, mon
     assert_clear_error(code, err, f"stage '{stage}' of run 'short' needs stage '{missing}'",
                        f"`just {missing} short`", "`just run short`")
     assert not (workdir / "runs" / "short" / "manifest.json").exists()
+    store = RunStore("short")
+    assert store.committed_stages() == []  # nothing committed, no stage folder left behind
+    assert not store.stages_dir.exists() or not list(store.stages_dir.iterdir())
 
 
 def test_python_m_pipeline_prints_one_error_line_and_exits_1(workdir):
@@ -202,17 +234,17 @@ def test_bench_with_an_unknown_group_runs_nothing(workdir, monkeypatch, capsys, 
 
 
 @pytest.mark.parametrize("key", ["sigma_bearing", "sigma_range_m"])
-def test_zero_measurement_noise_runs_or_is_refused_clearly(workdir, monkeypatch, capsys, key):
+def test_zero_measurement_noise_is_refused_clearly(workdir, monkeypatch, capsys, key):
+    """Zero measurement noise is refused by the config with one error line naming the key,
+    before anything is computed or written."""
     (workdir / "runs" / "scenarios" / "tiny.toml").write_text(TINY)
     (workdir / "runs" / "scenarios" / "noiseless.toml").write_text(
         f'extends = "tiny"\n\n[detection]\n{key} = 0.0\n')
-    monkeypatch.setattr(sys, "argv", ["crater-nav", "run", "noiseless"])
-    try:
-        cli.main()
-    except SystemExit as exit_:
-        code, err = exit_.code, capsys.readouterr().err
-        if code != 0:
-            assert_clear_error(code, err, f"detection.{key}")
+    code, out, err = main(monkeypatch, capsys, "run", "noiseless")
+    assert_clear_error(code, err, f"detection.{key}")
+    assert out == ""
+    assert not (workdir / "runs" / "noiseless").exists()
+    assert list((workdir / "catalogue").iterdir()) == []
 
 
 def test_ingest_of_a_missing_file_names_it(workdir, monkeypatch, capsys):

@@ -13,7 +13,18 @@ from pathlib import Path
 import pytest
 from conftest import REPO
 
-from pipeline.config import ConfigError, RunConfig, config_hash, load_config, to_dict
+from pipeline.config import (
+    MAX_FRAMES,
+    ConfigError,
+    RunConfig,
+    config_hash,
+    impact_time_bounds_s,
+    load_config,
+    scenario_path,
+    to_dict,
+    validate_run_id,
+)
+from pipeline.io.workspace import workspace
 
 
 def write_scenario(name: str, text: str) -> Path:
@@ -137,9 +148,10 @@ def test_wrong_type_names_the_key(workdir, section, key, value, full_key):
     ("trajectory", "end_s", "-5.0", "trajectory.end_s"),
 ], ids=lambda v: v if isinstance(v, str) and "." in v else None)
 def test_out_of_range_names_the_key(workdir, section, key, value, full_key):
-    write_scenario("bad", default_with(section, key, value))
-    with pytest.raises(ConfigError, match=full_key.replace(".", r"\.")):
+    path = write_scenario("bad", default_with(section, key, value))
+    with pytest.raises(ConfigError, match=full_key.replace(".", r"\.")) as exc:
         load_config("bad")
+    assert str(path) in str(exc.value) and "\n" not in str(exc.value)
 
 
 def test_negative_generator_seed_is_a_config_error(workdir):
@@ -148,12 +160,15 @@ def test_negative_generator_seed_is_a_config_error(workdir):
         load_config("bad")
 
 
-def test_run_id_argument_is_not_overridden_by_the_file(workdir):
-    write_scenario("rid", 'extends = "default"\nrun_id = "elsewhere"\nname = "other"\n')
-    try:
-        cfg = load_config("rid", run_id="mine")
-    except ConfigError:
-        return  # rejecting run_id/name as unknown scenario keys is a fix too
+def test_run_id_and_name_are_not_scenario_keys(workdir):
+    """run_id and name come from the command line and the file name, never from the file (the
+    old test accepted either outcome and so could not fail)."""
+    path = write_scenario("rid", 'extends = "default"\nrun_id = "elsewhere"\nname = "other"\n')
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['name', 'run_id'\]") as exc:
+        load_config("rid", run_id="mine")
+    assert str(path) in str(exc.value)
+    write_scenario("rid", 'extends = "default"\n')
+    cfg = load_config("rid", run_id="mine")
     assert (cfg.name, cfg.run_id) == ("rid", "mine")
 
 
@@ -270,3 +285,330 @@ def test_config_hash_distinguishes_none_and_parts(workdir):
     assert config_hash("ingest", cfg.catalogue) != config_hash("detect", cfg.catalogue)
     assert config_hash(None) != config_hash("none")
     assert config_hash(cfg.catalogue, "a") != config_hash(cfg.catalogue, "b")
+
+
+# --- validation at the door: every numeric field, then impossible combinations -------------------
+
+SECTION_CLASSES = {"": "RunConfig", "catalogue": "CatalogueConfig",
+                   "trajectory": "TrajectoryConfig", "detection": "DetectionConfig",
+                   "estimation": "EstimationConfig", "scoring": "ScoringConfig",
+                   "scoring.windows": "Window", "sweep": "SweepConfig"}
+
+
+def _numeric_cases() -> list[tuple[str, str, str]]:
+    """(section, key, TOML value) of a bad value for every numeric field of every section:
+    nan, inf, -inf and an absurd 1e300 for each float, -1 and 1e18 for each int (1e18 is a valid
+    seed), a non-finite component for float lists, a bad item for int lists."""
+    import typing
+
+    from pipeline import config
+
+    cases = []
+    for section, cls_name in SECTION_CLASSES.items():
+        cls = getattr(config, cls_name)
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            if cls is RunConfig and f.name in ("name", "run_id"):
+                continue
+            tp = hints[f.name]
+            args = [a for a in typing.get_args(tp) if a is not type(None)]
+            if typing.get_origin(tp) is tuple:
+                item = typing.get_args(tp)[0]
+                item_args = [a for a in typing.get_args(item) if a is not type(None)] or [item]
+                if item_args[0] is float:
+                    cases += [(section, f.name, f"[{v}, 0.0, 0.0]") for v in ("nan", "inf")]
+                elif item_args[0] is int:
+                    cases += [(section, f.name, "[-1]"), (section, f.name, "[1_000_000_000]")]
+                    if f.name == "seeds":
+                        cases.pop()
+                elif item_args[0] is str:
+                    cases.append((section, f.name, "[]"))
+                continue
+            base = args[0] if args else tp
+            if base is float:
+                cases += [(section, f.name, v) for v in ("nan", "inf", "-inf", "1e300")]
+            elif base is int:
+                cases.append((section, f.name, "-1"))
+                if "seed" not in f.name:
+                    cases.append((section, f.name, "1_000_000_000_000_000_000"))
+    return cases
+
+
+@pytest.mark.parametrize(("section", "key", "value"), _numeric_cases(),
+                         ids=lambda v: v.replace(".", "_") if isinstance(v, str) else None)
+def test_every_numeric_field_refuses_non_finite_and_absurd_values(workdir, section, key, value):
+    """Each numeric field is finite and bounded: one line naming the file and the key."""
+    path = write_scenario("bad", default_with(section, key, value))
+    with pytest.raises(ConfigError) as exc:
+        load_config("bad")
+    message = str(exc.value)
+    assert str(path) in message and "\n" not in message
+    full = key if section == "" else f"{section}.{key}"
+    if section == "scoring.windows":  # named by index (type errors) or by the window's name
+        assert "scoring.windows[" in message and key in message, message
+    else:
+        assert full in message, message
+
+
+def child(section: str, body: str) -> str:
+    """A scenario extending default that sets `body` in [section] ('' for the top level)."""
+    return 'extends = "default"\n' + (f"[{section}]\n" if section else "") + body + "\n"
+
+
+BAD_SCENARIOS = [
+    # (id, scenario text, key the message must name, further fragments it must hold)
+    ("impact-1e7", child("trajectory", "impact_time_s = 1e7"), "trajectory.impact_time_s",
+     ("694.838", "3678.949", "radial free fall", "half period")),
+    ("impact-below-free-fall", child("trajectory", "impact_time_s = 600.0"),
+     "trajectory.impact_time_s", ("694.838",)),
+    ("impact-nan", child("trajectory", "impact_time_s = nan"), "trajectory.impact_time_s",
+     ("finite",)),
+    ("sigma-range-inf", child("detection", "sigma_range_m = inf"), "detection.sigma_range_m",
+     ("finite",)),
+    ("sigma-bearing-nan", child("detection", "sigma_bearing = nan"), "detection.sigma_bearing",
+     ("finite",)),
+    ("sigma-bearing-absurd", child("detection", "sigma_bearing = 5.0"), "detection.sigma_bearing",
+     ("[1e-12, 1]",)),
+    ("fov-nan", child("detection", "fov_deg = nan"), "detection.fov_deg", ()),
+    ("visibility-a-inf", child("detection", "visibility_a = inf"), "detection.visibility_a", ()),
+    ("visibility-b-negative", child("detection", "visibility_b_per_km = -0.01"),
+     "detection.visibility_b_per_km", ()),
+    ("extends-dotdot", 'extends = "../x"\n', "extends", ("no path",)),
+    ("extends-absolute", 'extends = "/etc/passwd"\n', "extends", ()),
+    ("extends-subdir", 'extends = "sub/default"\n', "extends", ()),
+    ("extends-not-a-string", "extends = 3\n", "extends", ()),
+    ("periapsis-above-apoapsis", child("trajectory", "periapsis_radius_km = 3000.0"),
+     "trajectory.periapsis_radius_km", ("apoapsis radius (2037.4 km",)),
+    ("periapsis-negative", child("trajectory", "periapsis_radius_km = -5.0"),
+     "trajectory.periapsis_radius_km", ()),
+    ("periapsis-above-surface", child("trajectory", "periapsis_radius_km = 1800.0"),
+     "trajectory.periapsis_radius_km", ("never reaches the surface",)),
+    ("frame-rate-1e9", child("trajectory", "frame_rate_hz = 1e9"), "trajectory.frame_rate_hz",
+     ("3e+12 frames", f"{MAX_FRAMES:,}", "GB")),
+    ("frame-rate-inf", child("trajectory", "frame_rate_hz = inf"), "trajectory.frame_rate_hz", ()),
+    ("start-after-impact", child("trajectory", "start_s = 3500.0"), "trajectory.start_s",
+     ("impact at 3000",)),
+    ("end-before-start", child("trajectory", "start_s = 100.0\nend_s = 50.0"),
+     "trajectory.end_s", ()),
+    ("jitter-knots", child("trajectory", "jitter_rate_sigma_rad_s = 1e-6\njitter_knot_s = 1e-4"),
+     "trajectory.jitter_knot_s", ("jitter knots",)),
+    ("thrust-nan", child("trajectory", "specific_force_body_m_s2 = [0.0, 0.0, nan]"),
+     "trajectory.specific_force_body_m_s2[2]", ()),
+    ("apoapsis-too-far", child("trajectory", "apoapsis_alt_km = 40000.0"),
+     "trajectory.apoapsis_alt_km", ("radial free fall",)),
+    ("window-after-impact",
+     child("scoring", 'table_window = "late"\n[[scoring.windows]]\nname = "late"\n'
+                      "start_s = 3100.0\nend_s = 3200.0"),
+     "scoring.windows[late].start_s", ("impact at 3000",)),
+    ("final-window-longer-than-descent", child("scoring", "final_window_s = 4000.0"),
+     "scoring.final_window_s", ()),
+    ("too-many-synthetic-craters", child("catalogue", "synthetic_min_diam_km = 0.05"),
+     "catalogue.synthetic_min_diam_km", ("synthetic craters", "GB")),
+    ("empty-synthetic-catalogue",
+     child("catalogue", "synthetic_min_diam_km = 3000.0\nsynthetic_max_diam_km = 3400.0"),
+     "catalogue.synthetic_min_diam_km", ("empty",)),
+    ("healpix-order-13", child("catalogue", "healpix_order = 13"), "catalogue.healpix_order", ()),
+    ("sweep-workers-0", child("sweep", "workers = 0"), "sweep.workers", ()),
+    ("sweep-too-many-runs", child("sweep", f"seeds = {list(range(2000))}"), "sweep.seeds",
+     ("12,000 runs",)),
+    ("sweep-no-methods", child("sweep", "methods = []"), "sweep.methods", ()),
+    ("max-condition-below-1", child("estimation", "max_condition = 0.5"),
+     "estimation.max_condition", ()),
+    ("consistency-probability-1", child("estimation", "consistency_probability = 1.0"),
+     "estimation.consistency_probability", ()),
+    ("assumed-sigma-none", child("estimation", 'assumed_sigma_bearing = "none"'),
+     "estimation.assumed_sigma_bearing", ('"truth"',)),
+    ("assumed-sigma-negative", child("estimation", "assumed_sigma_range_m = -1.0"),
+     "estimation.assumed_sigma_range_m", ()),
+    ("assumed-sigma-inf", child("estimation", "assumed_sigma_range_m = inf"),
+     "estimation.assumed_sigma_range_m", ()),
+    ("seed-negative", child("", "seed = -1"), "seed", ()),
+]
+
+
+@pytest.mark.parametrize(("text", "key", "fragments"), [c[1:] for c in BAD_SCENARIOS],
+                         ids=[c[0] for c in BAD_SCENARIOS])
+def test_bad_scenario_is_one_line_naming_file_and_key(workdir, text, key, fragments):
+    path = write_scenario("bad", text)
+    with pytest.raises(ConfigError) as exc:
+        load_config("bad")
+    message = str(exc.value)
+    assert message.split(": ", 1)[0] == str(path.resolve()), message  # the file comes first
+    assert f"{key} " in message or f"{key}:" in message, message
+    assert "\n" not in message
+    for fragment in fragments:
+        assert fragment in message, (fragment, message)
+
+
+def test_impact_time_bounds_are_the_orbit_solvers_range(workdir):
+    """The admissible interval is where orbit.periapsis_radius_for_impact solves: just inside
+    loads, just outside is a ConfigError (not the solver's ValueError)."""
+    lo, hi = impact_time_bounds_s(300.0)
+    assert 694.8 < lo < 694.9 and 3678.9 < hi < 3679.0
+    scoring = {"windows": [{"name": "w", "start_s": 0.0, "end_s": 600.0}], "table_window": "w",
+               "final_window_s": 100.0}  # inside the shortest descent
+    for t in (lo * (1 + 1e-6), hi * (1 - 1e-6)):
+        cfg = load_config("default", overrides={"trajectory": {"impact_time_s": t},
+                                                "scoring": scoring})
+        assert cfg.trajectory.ballistic_impact_s() == t
+    for t in (lo, hi, lo * (1 - 1e-6), hi * (1 + 1e-6)):
+        with pytest.raises(ConfigError, match=r"trajectory\.impact_time_s"):
+            load_config("default", overrides={"trajectory": {"impact_time_s": t}})
+
+
+def test_given_periapsis_ignores_impact_time_and_thrust_lifts_the_surface_rule(workdir):
+    cfg = load_config("default", overrides={"trajectory": {"periapsis_radius_km": 1650.0,
+                                                           "impact_time_s": 1234.0}})
+    assert cfg.trajectory.periapsis_radius_km == 1650.0
+    # with thrust the orbit may still come down: only periapsis < apoapsis is required
+    load_config("default", overrides={"trajectory": {"periapsis_radius_km": 1800.0,
+                                                     "specific_force_body_m_s2": [0.0, 0.0, 1.0]}})
+
+
+def test_jitter_horizon_follows_the_actual_descent(workdir):
+    """The jitter's knots cover twice the ballistic descent (the given periapsis's when set, not
+    the ignored impact_time_s), and its knot count is bounded on that span."""
+    cfg = load_config("default").trajectory
+    assert cfg.jitter_horizon_s() == 6000.0
+    given = load_config("default", overrides={"trajectory": {
+        "periapsis_radius_km": 1650.0, "impact_time_s": 80_000.0,
+        "jitter_rate_sigma_rad_s": 1e-6, "jitter_knot_s": 0.01}}).trajectory
+    assert 5060.0 < given.jitter_horizon_s() < 5070.0  # 2 x 2,532 s
+    with pytest.raises(ConfigError, match=r"trajectory\.jitter_knot_s .*jitter knots"):
+        load_config("default", overrides={"trajectory": {"jitter_rate_sigma_rad_s": 1e-6,
+                                                         "jitter_knot_s": 0.005}})
+
+
+def test_frame_limit_is_the_frame_count_not_the_rate(workdir):
+    """10 Hz over the whole descent (30,001 frames) and 1 kHz over 100 s load; the estimate
+    matches the frames of [start_s, min(end_s, impact)]."""
+    cfg = load_config("default", overrides={"trajectory": {"frame_rate_hz": 10.0}})
+    assert cfg.trajectory.frame_count_estimate() == 30_001
+    cfg = load_config("default", overrides={"trajectory": {"frame_rate_hz": 1000.0,
+                                                           "start_s": 100.0, "end_s": 200.0}})
+    assert cfg.trajectory.frame_count_estimate() == 100_001
+    with pytest.raises(ConfigError, match=r"trajectory\.frame_rate_hz"):
+        load_config("default", overrides={"trajectory": {"frame_rate_hz": 1000.0}})
+
+
+def test_shipped_scenarios_all_load(workdir):
+    for path in sorted(Path("runs/scenarios").glob("*.toml")):
+        cfg = load_config(path.stem)
+        assert cfg.name == path.stem
+
+
+# --- run ids --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("run_id", ["..", ".", "", "a/b", "../x", "/tmp/x", "x" * 101, "a b",
+                                   "é", "-rf", ".hidden", "a\\b", "scenarios", "a\nb"])
+def test_bad_run_ids_are_refused_in_one_line(workdir, run_id):
+    with pytest.raises(ConfigError, match="run_id") as exc:
+        validate_run_id(run_id)
+    assert "\n" not in str(exc.value).replace(repr(run_id), "")
+    with pytest.raises(ConfigError, match="run_id"):
+        load_config("default", run_id=run_id)
+
+
+@pytest.mark.parametrize("run_id", ["default", "run-1.2_x", "x" * 100, "A", "0"])
+def test_good_run_ids_pass_unchanged(workdir, run_id):
+    assert validate_run_id(run_id) == run_id
+    assert load_config("default", run_id=run_id).run_id == run_id
+
+
+def test_a_scenario_name_that_is_no_run_id_needs_an_explicit_one(workdir):
+    path = workdir / "my scenario.toml"
+    path.write_text('extends = "default"\n')
+    with pytest.raises(ConfigError, match="--run-id"):
+        load_config(str(path))
+    assert load_config(str(path), run_id="mine").name == "my scenario"
+
+
+# --- paths: the workspace, not the working directory ----------------------------------------------
+
+
+def test_bare_names_come_from_the_workspace_whatever_the_cwd(workdir, monkeypatch,
+                                                             tmp_path_factory):
+    assert workspace().scenarios_dir == workdir / "runs" / "scenarios"
+    assert scenario_path("default") == workdir / "runs" / "scenarios" / "default.toml"
+    write_scenario("local", 'extends = "short"\nseed = 4\n')
+    elsewhere = tmp_path_factory.mktemp("elsewhere")
+    (elsewhere / "runs" / "scenarios").mkdir(parents=True)
+    (elsewhere / "runs" / "scenarios" / "local.toml").write_text('extends = "default"\nseed = 9\n')
+    monkeypatch.chdir(elsewhere)  # a cwd with its own runs/scenarios: ignored
+    cfg = load_config("local")
+    assert (cfg.seed, cfg.trajectory.start_s) == (4, 1800.0)
+    assert cfg.catalogue.db_path == "catalogue/craters.duckdb"  # stays a (relative) string
+    (workdir / "sub").mkdir()
+    monkeypatch.chdir(workdir / "sub")
+    assert load_config("local").seed == 4
+    with pytest.raises(ConfigError, match=r"runs/scenarios/absent\.toml.*not found"):
+        load_config("absent")
+
+
+def test_a_toml_path_is_taken_as_given_and_its_parent_from_the_workspace(workdir, monkeypatch):
+    mine = workdir / "mine"
+    mine.mkdir()
+    (mine / "exp.toml").write_text('extends = "short"\nseed = 6\n')
+    (mine / "short.toml").write_text('extends = "default"\nseed = 99\n')  # not the parent
+    monkeypatch.chdir(mine)
+    cfg = load_config("exp.toml")
+    assert (cfg.name, cfg.seed, cfg.trajectory.start_s) == ("exp", 6, 1800.0)
+    monkeypatch.chdir(workdir)
+    assert load_config("mine/exp.toml").seed == 6
+    with pytest.raises(ConfigError, match=r"mine/nope\.toml: scenario not found"):
+        load_config("mine/nope.toml")
+
+
+@pytest.mark.parametrize("name", ["../default", "sub/default", "..", "/etc/passwd"])
+def test_a_bare_scenario_name_with_a_path_is_refused(workdir, name):
+    with pytest.raises(ConfigError, match="scenario"):
+        load_config(name)
+
+
+# --- truth apart from the navigator's assumptions -------------------------------------------------
+
+
+def test_navigator_assumes_the_truth_by_default(workdir):
+    cfg = load_config("default")
+    assert (cfg.detection.sigma_bearing, cfg.detection.sigma_range_m) == (1e-4, 10.0)
+    assert cfg.estimation.assumed_sigma_bearing is None
+    assert cfg.estimation.assumed_sigma_range_m is None
+    assert cfg.navigator_sigmas() == (1e-4, 10.0)
+    assert cfg.estimation.consistency_probability == 1 - 1e-6
+    assert cfg.estimation.max_condition == 1e10
+    shown = json.loads(json.dumps(to_dict(cfg)))["estimation"]  # as config.json shows it
+    assert (shown["assumed_sigma_bearing"], shown["assumed_sigma_range_m"]) == ("truth", "truth")
+    # a changed truth is followed by a navigator that assumes the truth
+    changed = load_config("default", overrides={"detection": {"sigma_range_m": 3.0}})
+    assert changed.navigator_sigmas() == (1e-4, 3.0)
+
+
+def test_a_mistuned_navigator_can_be_written_down(workdir):
+    write_scenario("mistuned", 'extends = "default"\n[estimation]\nassumed_sigma_bearing = 5e-4\n'
+                   'assumed_sigma_range_m = "Truth"\n')
+    base, cfg = load_config("default"), load_config("mistuned")
+    assert cfg.detection == base.detection  # the truth (and the detect stage's key) unchanged
+    assert config_hash(cfg.detection) == config_hash(base.detection)
+    assert config_hash(cfg.estimation) != config_hash(base.estimation)
+    assert cfg.navigator_sigmas() == (5e-4, 10.0)
+    shown = to_dict(cfg)["estimation"]
+    assert (shown["assumed_sigma_bearing"], shown["assumed_sigma_range_m"]) == (5e-4, "truth")
+    # an explicit number equal to the truth is a different intent, and hashes apart from "truth"
+    same = load_config("default", overrides={"estimation": {"assumed_sigma_range_m": 10.0}})
+    assert same.navigator_sigmas() == base.navigator_sigmas()
+    assert config_hash(same.estimation) != config_hash(base.estimation)
+
+
+def test_default_toml_comments_every_key(workdir):
+    """Every `key = value` line of default.toml carries a comment (unit and meaning), except the
+    scoring windows' own rows, which a comment above them describes."""
+    in_window, bare = False, []
+    for line in Path("runs/scenarios/default.toml").read_text().splitlines():
+        stripped = line.strip()
+        if stripped.startswith("["):
+            in_window = stripped == "[[scoring.windows]]"
+        elif "=" in stripped and not stripped.startswith("#") and not in_window:
+            if "#" not in stripped:
+                bare.append(stripped)
+    assert bare == []

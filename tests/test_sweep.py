@@ -2,7 +2,8 @@
 methods, seeds 1 and 2, 1,800-2,000 s every 10 s, a 3 km synthetic catalogue) on two workers.
 table1.csv is recomputed from sweep_scores.parquet and the paper; the sweep's scores are those of
 ordinary runs of the same config and seed (one detection pass per seed and `reselect` give exactly
-what the stage path gives with a cap); outputs, recording, cache and clean-up.
+what the stage path gives with a cap); outputs, recording, cache and clean-up. The sweep is a stage
+(`pipeline/stages/sweep.py`): its outputs are committed in runs/sw/sweep/.
 """
 
 from __future__ import annotations
@@ -17,14 +18,15 @@ import numpy as np
 import polars as pl
 import pytest
 import rerun as rr
-from conftest import REPO
+from conftest import REPO, run_stages
 from polars.testing import assert_frame_equal
 
-from pipeline import stages
 from pipeline.config import RunConfig, load_config
+from pipeline.engine.runners import ProcessPoolRunner
 from pipeline.io.store import RunStore
-from pipeline.sweep import run_sweep
-from pipeline.viz import recording, report
+from pipeline.stages import DAG, SWEEP_TARGET
+from pipeline.studies import suslu2025
+from pipeline.viz import recording
 
 DEFAULT_TOML = str(REPO / "runs" / "scenarios" / "default.toml")
 PAPER = REPO.parent / "shared" / "paper" / "visual-pose-estimation-moon-landing.md"
@@ -58,6 +60,12 @@ def config(db: Path, run_id: str = SWEEP_ID, **sections) -> RunConfig:
     return load_config(DEFAULT_TOML, run_id, overrides)
 
 
+def run_sweep(cfg: RunConfig, root: Path, workers: int = 2) -> list[str]:
+    """`just sweep`: the sweep stage and what it needs, fan-out on a pool of `workers`."""
+    return run_stages(cfg, root, DAG.upstream_closure([SWEEP_TARGET]),
+                      runner=ProcessPoolRunner(workers))
+
+
 class Sweep:
     """The module's sweep (under root/runs/sw) and ordinary runs of the same config on demand."""
 
@@ -65,27 +73,28 @@ class Sweep:
         self.root = root
         self.db = root / "catalogue" / "craters.duckdb"
         self.cfg = config(self.db)
-        self.dir = root / "runs" / SWEEP_ID
-        self._runs: dict[tuple[int, int | None], Path] = {}
+        self.dir = root / "runs" / SWEEP_ID  # the run folder
+        self.out = self.dir / "sweep"  # the sweep stage's committed outputs
+        self._runs: dict[tuple[int, int | None], RunStore] = {}
 
     def read(self, name: str) -> pl.DataFrame:
-        return pl.read_parquet(self.dir / f"{name}.parquet")
+        return pl.read_parquet(self.out / f"{name}.parquet")
 
     def table1(self) -> pl.DataFrame:
-        return pl.read_csv(self.dir / "table1.csv", schema=TABLE1_SCHEMA)
+        return pl.read_csv(self.out / "table1.csv", schema=TABLE1_SCHEMA)
 
     def manifest(self) -> dict:
         return json.loads((self.dir / "manifest.json").read_text())
 
-    def ordinary_run(self, seed: int, cap: int | None) -> Path:
-        """Every stage with detection.max_craters = cap and root seed = seed."""
+    def ordinary_run(self, seed: int, cap: int | None) -> RunStore:
+        """Every stage of `just run` with detection.max_craters = cap and root seed = seed."""
         if (seed, cap) not in self._runs:
             run_id = f"seed{seed}-cap{label(cap)}"
             cfg = config(self.db, run_id, seed=seed,
                          detection={"max_craters": "none" if cap is None else cap})
             store = RunStore(run_id, self.root / "runs")
-            stages.run_pipeline(cfg, store)
-            self._runs[seed, cap] = store.run_dir
+            run_stages(cfg, store.root)
+            self._runs[seed, cap] = store
         return self._runs[seed, cap]
 
 
@@ -97,7 +106,7 @@ def sweep(tmp_path_factory) -> Sweep:
     mp = pytest.MonkeyPatch()
     mp.chdir(root)
     try:
-        run_sweep(s.cfg, SWEEP_ID, workers=2)
+        assert run_sweep(s.cfg, root / "runs") == ["ingest", "trajectory", "sweep"]
     finally:
         mp.undo()
     return s
@@ -136,12 +145,12 @@ def paper_table1() -> dict[int | None, dict[str, float]]:
 
 
 def test_paper_values_are_the_papers_table1(sweep):
-    assert report.PAPER_TABLE1 == paper_table1()
+    assert suslu2025.TABLE1 == paper_table1()
     t1 = sweep.table1()
     for row in t1.iter_rows(named=True):
         cap = None if row["cap"] == "none" else int(row["cap"])
         # rows about MCI axes reuse the paper's phi, theta, psi
-        assert row["paper_rmse"] == report.PAPER_TABLE1[cap][row["quantity"].replace("_mci", "")]
+        assert row["paper_rmse"] == suslu2025.TABLE1[cap][row["quantity"].replace("_mci", "")]
 
 
 def test_rmse_is_pooled_over_seeds_in_the_table_window(sweep):
@@ -183,13 +192,13 @@ def test_caps_bound_the_craters_used(sweep):
 def test_sweep_scores_are_those_of_an_ordinary_run(sweep, seed, cap):
     """A run with detection.max_craters = cap and seed = seed gives, frame for frame and method for
     method, exactly the sweep's scores (same estimates, errors, bounds and NEES)."""
-    run_dir = sweep.ordinary_run(seed, cap)
-    ordinary = pl.read_parquet(run_dir / "scores.parquet")
+    store = sweep.ordinary_run(seed, cap)
+    ordinary = pl.read_parquet(store.path("scores.parquet"))
     swept = sweep.read("sweep_scores").filter(
         (pl.col("seed") == seed) & (pl.col("cap_label") == label(cap))).drop("seed", "cap_label")
     assert ordinary.height == len(METHODS) * N_FRAMES
     assert_frame_equal(swept, ordinary, check_exact=True)
-    est = pl.read_parquet(run_dir / "estimates.parquet")
+    est = pl.read_parquet(store.path("estimates.parquet"))
     assert (est["n_used"] <= (cap or np.inf)).all()
 
 
@@ -197,16 +206,17 @@ def test_sweep_scores_are_those_of_an_ordinary_run(sweep, seed, cap):
 
 
 def test_table1_markdown_sets_the_papers_table_beside_ours(sweep):
-    md = (sweep.dir / "table1.md").read_text()
+    md = (sweep.out / "table1.md").read_text()
     t1 = sweep.table1()
     assert md.startswith("# Table 1: RMSE over 1800-2400 s")
     assert "| | 10 | none |" in md
     assert "### The paper's Table 1" in md and "| X (m) | 4.923 | 0.6111 |" in md
-    assert "| psi, MCI axes (deg) | 0.0066 | 0.00076 |" in md
+    # row labels are the vocabulary's (pipeline.vocab.QUANTITIES, ATTITUDE_MCI)
+    assert "| yaw psi, MCI axes (deg) | 0.0066 | 0.00076 |" in md
     for method in METHODS:
         assert f"### `{method}`: RMSE (ours / paper)" in md
         assert f"### `{method}`: RMSE / sqrt(CRLB)" in md
-        for q, name in (("y_m", "Y (m)"), ("theta_deg", "theta (deg)")):
+        for q, name in (("y_m", "Y (m)"), ("theta_deg", "pitch theta (deg)")):
             r = {c: t1.filter(pl.col("method") == method, pl.col("cap") == c,
                               pl.col("quantity") == q).row(0, named=True) for c in ("10", "none")}
             assert (f"| {name} | {r['10']['rmse']:.4g} ({r['10']['ratio_to_paper']:.2f}) | "
@@ -216,28 +226,28 @@ def test_table1_markdown_sets_the_papers_table_beside_ours(sweep):
 
 
 def test_table1_markdown_quotes_the_papers_values_as_printed(sweep):
-    md = (sweep.dir / "table1.md").read_text()
+    md = (sweep.out / "table1.md").read_text()
     block = md.split("### The paper's Table 1")[1].split("###")[0]
     for q, name in (("x_m", "X (m)"), ("y_m", "Y (m)"), ("z_m", "Z (m)")):
-        cells = " | ".join(str(report.PAPER_TABLE1[cap][q]) for cap in CAPS)
+        cells = " | ".join(str(suslu2025.TABLE1[cap][q]) for cap in CAPS)
         assert f"| {name} | {cells} |" in block
 
 
 def test_report_and_figures_7_8(sweep):
     """Fig. 8 (1,800-2,400 s) is drawn; Fig. 7 (0-1,500 s) is left out: no frame of this
     sweep falls in its window."""
-    text = (sweep.dir / "report.md").read_text()
-    assert (sweep.dir / "table1.md").read_text().split("\n\n", 1)[1] in text
+    text = (sweep.out / "sweep_report.md").read_text()
+    assert (sweep.out / "table1.md").read_text().split("\n\n", 1)[1] in text
     for method in METHODS:
         fig = f"fig8_{method}_caps_1800-2400s.png"
         assert f"]({fig})" in text
-        assert (sweep.dir / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert (sweep.out / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"fig7_{method}" not in text
-        assert not (sweep.dir / f"fig7_{method}_caps_0-1500s.png").exists()
+        assert not (sweep.out / f"fig7_{method}_caps_0-1500s.png").exists()
 
 
 def test_sweep_recording_holds_a_series_per_method_and_cap(sweep):
-    path = sweep.dir / "sweep.rrd"
+    path = sweep.out / "sweep.rrd"
     [entry] = rr.chunk.RrdReader(path).recordings()
     assert (entry.application_id, entry.recording_id) == (recording.APP_ID,
                                                           recording.recording_id(SWEEP_ID))
@@ -258,34 +268,45 @@ def test_sweep_recording_holds_a_series_per_method_and_cap(sweep):
 
 def test_manifest_outputs_and_no_leftovers(sweep):
     manifest = sweep.manifest()
-    assert list(manifest["stages"]) == ["ingest", "trajectory", "sweep"]
+    assert set(manifest["stages"]) == {"ingest", "trajectory", "sweep"}
     entry = manifest["stages"]["sweep"]
     assert entry["info"]["tasks"] == len(CAPS) * len(SEEDS) and entry["info"]["workers"] == 2
     assert set(entry["inputs"]) == {"ingest", "trajectory"}
+    store = RunStore(SWEEP_ID, sweep.root / "runs")
+    assert entry["inputs"]["trajectory"]["token"] == store.token("trajectory")
     figures = {f"fig8_{m}_caps_1800-2400s.png" for m in METHODS}  # no frame in Fig. 7's window
     assert set(entry["outputs"]) == {"table1.csv", "table1.md", "sweep_scores.parquet",
-                                     "report.md", "sweep.rrd", *figures}
+                                     "table1.parquet", "sweep_report.md", "sweep.rrd", *figures}
     assert set(entry["tables"]) == {"sweep_scores", "table1"}
-    names = {p.name for p in sweep.dir.iterdir()}
-    assert not [n for n in names if "-seed" in n or n.startswith(".tmp-")], names
-    assert not {"detections.parquet", "estimates.parquet"} & names  # no stage outputs per task
+    assert {"sweep_scores", "table1"} <= set(store.tables())
+    names = {p.name for p in sweep.out.iterdir()}
+    assert names == {*entry["outputs"], "stage.json"}, names  # no per-seed scratch left
+    assert not [p for p in sweep.dir.rglob("*") if "-seed" in p.name or ".tmp-" in p.name]
+    # one committed folder per stage, no stage outputs per task (detect, estimate, score)
+    assert {p.name.split(".")[0] for p in (sweep.dir / ".stages").iterdir()} == set(
+        manifest["stages"])
+    assert len(list((sweep.dir / ".stages").iterdir())) == 3
+    assert not (sweep.dir / "detect").exists() and not (sweep.dir / "estimate").exists()
 
 
 # --- cache ----------------------------------------------------------------------------------------
 
 
 def stamps(run_dir: Path) -> dict:
-    """Manifest entries and the upstream outputs' inodes (a rewrite renames a new file in)."""
+    """Manifest entries, the committed folders and the outputs' inodes (a rewrite commits a new
+    folder)."""
     manifest = json.loads((run_dir / "manifest.json").read_text())
+    store = RunStore(run_dir.name, run_dir.parent)
     return {"stages": manifest["stages"],
-            "inodes": {n: (run_dir / n).stat().st_ino for n in ("trajectory.parquet",
-                                                                "ingest.rrd", "table1.csv")}}
+            "tokens": {s: store.token(s) for s in ("ingest", "trajectory", "sweep")},
+            "inodes": {n: store.path(n).stat().st_ino for n in ("trajectory.parquet",
+                                                                "catalogue.json", "table1.csv")}}
 
 
 def test_a_second_sweep_is_skipped(sweep, monkeypatch, capsys):
     before = stamps(sweep.dir)
     monkeypatch.chdir(sweep.root)
-    run_sweep(sweep.cfg, SWEEP_ID, workers=2)
+    assert run_sweep(sweep.cfg, sweep.root / "runs") == []
     assert stamps(sweep.dir) == before
     assert "sweep: up to date" in capsys.readouterr().out
 
@@ -293,19 +314,28 @@ def test_a_second_sweep_is_skipped(sweep, monkeypatch, capsys):
 def test_a_changed_sweep_reruns_without_recomputing_upstream(sweep, tmp_path, monkeypatch):
     """A copy of the sweep folder, swept again with seed 2 and cap 20 only: the sweep stage reruns,
     ingest and trajectory (in the sweep's own manifest) do not."""
-    shutil.copytree(sweep.dir, tmp_path / "runs" / SWEEP_ID)
+    shutil.copytree(sweep.dir, tmp_path / "runs" / SWEEP_ID, symlinks=True)
     run_dir = tmp_path / "runs" / SWEEP_ID
     before = stamps(run_dir)
     monkeypatch.chdir(tmp_path)
     cfg = config(sweep.db, sweep={"caps": [20], "seeds": [2]})
-    run_sweep(cfg, SWEEP_ID, workers=2)
+    assert run_sweep(cfg, tmp_path / "runs") == ["sweep"]
     after = stamps(run_dir)
     for stage in ("ingest", "trajectory"):
         assert after["stages"][stage] == before["stages"][stage]
+        assert after["tokens"][stage] == before["tokens"][stage]
     assert after["inodes"]["trajectory.parquet"] == before["inodes"]["trajectory.parquet"]
-    assert after["inodes"]["ingest.rrd"] == before["inodes"]["ingest.rrd"]
+    assert after["inodes"]["catalogue.json"] == before["inodes"]["catalogue.json"]
     assert after["stages"]["sweep"]["key"] != before["stages"]["sweep"]["key"]
-    t1 = pl.read_csv(run_dir / "table1.csv", schema=TABLE1_SCHEMA)
+    assert after["tokens"]["sweep"] != before["tokens"]["sweep"]
+    t1 = pl.read_csv(run_dir / "sweep" / "table1.csv", schema=TABLE1_SCHEMA)
     assert set(t1["cap"]) == {"20"} and t1.height == len(METHODS) * len(QUANTITIES)
-    assert set(pl.read_parquet(run_dir / "sweep_scores.parquet")["seed"]) == {2}
-    assert not list(run_dir.glob("*-seed*.parquet"))
+    assert set(pl.read_parquet(run_dir / "sweep" / "sweep_scores.parquet")["seed"]) == {2}
+    assert not [p for p in run_dir.rglob("*") if "-seed" in p.name]
+    # the replaced sweep folder is gone; the run database's views read the new tables
+    assert not (run_dir / before["tokens"]["sweep"]).exists()
+    con = duckdb.connect(str(run_dir / "run.duckdb"), read_only=True)
+    try:
+        assert set(con.sql("SELECT DISTINCT seed FROM sweep_scores").pl()["seed"]) == {2}
+    finally:
+        con.close()

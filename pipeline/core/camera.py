@@ -111,7 +111,7 @@ def on_visible_side(c_m: np.ndarray, r_m: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", c_m, r_m - c_m) > 0
 
 
-def visibility_threshold_km(altitude_km: np.ndarray, a: float, b_per_km: float, unit: str
+def visibility_threshold_km(altitude_km: float | np.ndarray, a: float, b_per_km: float, unit: str
                             ) -> np.ndarray:
     """Smallest visible crater diameter (km) at an altitude (km), paper Eq. 9:
     D > a exp(b h), with D read in `unit` ("km" per ERRATA 5, or "m" as printed)."""

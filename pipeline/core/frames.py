@@ -5,14 +5,13 @@ Paper Sec. 3.1-3.2 with ERRATA 1-2: MCMF from latitude/longitude is the standard
 spinning eastward about +Z (the paper's Eq. 2 prints its transpose). MCI and MCMF coincide at t = 0.
 
 Conventions: SI units, angles in rad; component axis last, `(N, 3)` or `(3,)`; `dcm_a_from_b`
-with `v_a = dcm_a_from_b @ v_b`; quaternions `q_a_from_b` scalar-last (x, y, z, w) as in scipy.
+with `v_a = dcm_a_from_b @ v_b`; quaternion helpers in `rotations`.
 The camera frame is the body frame (boresight body +z, image u along body +x, v along body +y).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 DCM_BODY_FROM_CAMERA = np.eye(3)
 
@@ -94,13 +93,3 @@ def dcm_mci_from_orbit(r_mci_m: np.ndarray, v_mci_m_s: np.ndarray) -> np.ndarray
     x = np.cross(y, z)
     return np.stack([x, y, z], axis=-1)
 
-
-def q_from_dcm(dcm_a_from_b: np.ndarray) -> np.ndarray:
-    """Scalar-last quaternion q_a_from_b of a DCM (..., 3, 3); sign chosen with w >= 0."""
-    q = Rotation.from_matrix(dcm_a_from_b).as_quat()
-    return np.where(q[..., 3:4] < 0, -q, q)
-
-
-def dcm_from_q(q_a_from_b: np.ndarray) -> np.ndarray:
-    """DCM (..., 3, 3) of a scalar-last quaternion q_a_from_b (normalised first)."""
-    return Rotation.from_quat(q_a_from_b).as_matrix()

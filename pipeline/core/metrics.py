@@ -7,6 +7,8 @@ tests, as a rotation vector (rad), the same right perturbation the estimators' c
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -66,14 +68,23 @@ def nees(error: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return out
 
 
-def window_stats(values: np.ndarray) -> dict[str, np.ndarray]:
-    """Per-column statistics over the rows with finite values (rows: frames, cols: axes):
-    rmse, max_abs, p95_abs (NaN when no row is finite) and the count of finite rows."""
+@dataclass(frozen=True)
+class WindowStats:
+    """Per-column statistics of a window (NaN when no row is finite) and its finite row count."""
+
+    rmse: np.ndarray
+    max_abs: np.ndarray
+    p95_abs: np.ndarray
+    n: int
+
+
+def window_stats(values: np.ndarray) -> WindowStats:
+    """Per-column statistics over the rows with finite values (rows: frames, cols: axes)."""
     ok = np.all(np.isfinite(values), axis=1)
     v = values[ok]
     if v.shape[0] == 0:
         nan = np.full(values.shape[1], np.nan)
-        return {"rmse": nan, "max_abs": nan, "p95_abs": nan, "n": 0}
+        return WindowStats(nan, nan, nan, 0)
     a = np.abs(v)
-    return {"rmse": np.sqrt(np.mean(v * v, axis=0)), "max_abs": a.max(axis=0),
-            "p95_abs": np.percentile(a, 95, axis=0), "n": int(v.shape[0])}
+    return WindowStats(np.sqrt(np.mean(v * v, axis=0)), a.max(axis=0),
+                       np.percentile(a, 95, axis=0), int(v.shape[0]))

@@ -17,8 +17,8 @@ from scipy.integrate import OdeSolution, solve_ivp
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
-from pipeline.constants import MOON_GM_M3_S2, MOON_RADIUS_M
-from pipeline.core import frames
+from pipeline.core import rotations
+from pipeline.core.constants import MOON_GM_M3_S2, MOON_RADIUS_M
 
 
 def time_from_apoapsis_to_radius(apoapsis_radius_m: float, periapsis_radius_m: float,
@@ -51,8 +51,8 @@ def periapsis_radius_for_impact(apoapsis_radius_m: float, impact_time_s: float, 
     The fall time grows with the periapsis radius from the radial free fall (periapsis 0) to the
     half period (periapsis on the surface); impact times outside that range raise ValueError."""
     def excess_s(rp_m: float) -> float:
-        return time_from_apoapsis_to_radius(apoapsis_radius_m, rp_m, moon_radius_m,
-                                            gm_m3_s2=gm_m3_s2) - impact_time_s
+        return float(time_from_apoapsis_to_radius(apoapsis_radius_m, rp_m, moon_radius_m,
+                                                  gm_m3_s2=gm_m3_s2)) - impact_time_s
 
     lo, hi = 0.0, float(moon_radius_m)
     if not excess_s(lo) < 0.0 < excess_s(hi):
@@ -187,7 +187,7 @@ def propagate_descent(r0_mci_m: np.ndarray, v0_mci_m_s: np.ndarray, q0_mci_from_
 
     def rhs(t_s: float, y: np.ndarray) -> np.ndarray:
         r, v, q = y[0:3], y[3:6], y[6:10]
-        a_nongrav = frames.dcm_from_q(q) @ f_body if thrust else np.zeros(3)
+        a_nongrav = rotations.dcm_from_q(q) @ f_body if thrust else np.zeros(3)
         omega = nadir_body_rate(r, v, a_nongrav)
         if jitter is not None:
             omega = omega + jitter(t_s)
@@ -197,8 +197,8 @@ def propagate_descent(r0_mci_m: np.ndarray, v0_mci_m_s: np.ndarray, q0_mci_from_
     def surface_contact(t_s: float, y: np.ndarray) -> float:
         return float(np.linalg.norm(y[0:3])) - moon_radius_m
 
-    surface_contact.terminal = True
-    surface_contact.direction = -1.0
+    surface_contact.terminal = True  # type: ignore[attr-defined]  # solve_ivp event attributes
+    surface_contact.direction = -1.0  # type: ignore[attr-defined]
 
     atol = np.concatenate([np.full(3, atol_m), np.full(3, atol_m * np.sqrt(gm_m3_s2 / r0_norm**3)),
                            np.full(4, atol_m / r0_norm)])
@@ -208,7 +208,8 @@ def propagate_descent(r0_mci_m: np.ndarray, v0_mci_m_s: np.ndarray, q0_mci_from_
     ts_s, interpolants, step_s = [0.0], [], None
     for t_start_s, t_stop_s in itertools.pairwise(bounds_s):
         # resume near the previous step size (DOP853 grows a step at most tenfold)
-        first_step_s = None if step_s is None else min(10.0 * step_s, t_stop_s - t_start_s)
+        first_step_s: float | None = (None if step_s is None
+                                      else min(10.0 * step_s, t_stop_s - t_start_s))
         sol = solve_ivp(rhs, (t_start_s, t_stop_s), y, method="DOP853", rtol=rtol, atol=atol,
                         dense_output=True, events=surface_contact, first_step=first_step_s)
         if sol.status < 0:

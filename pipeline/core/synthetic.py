@@ -27,7 +27,7 @@ def _piecewise_linear(x: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarr
     return ys[seg] + slope * (x - xs[seg])
 
 
-def cumulative_count(diam_km: np.ndarray, anchors=ROBBINS2018_CUMULATIVE) -> np.ndarray:
+def cumulative_count(diam_km: float | np.ndarray, anchors=ROBBINS2018_CUMULATIVE) -> np.ndarray:
     """N(>=D): craters over the whole Moon with diameter >= diam_km (untruncated law)."""
     log_d, log_n = _log_anchors(anchors)
     return np.exp(_piecewise_linear(np.log(diam_km), log_d, log_n))

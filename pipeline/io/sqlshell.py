@@ -1,56 +1,497 @@
-"""`just sql`: read-only SQL over the crater catalogue and a run's tables, printed as a table."""
+"""`just sql`: read-only SQL over the crater catalogue and a run's tables.
+
+Two layers keep a session read-only:
+
+1. Only reading statements run: SELECT (with DESCRIBE, SHOW, SUMMARIZE, FROM ...), CALL, EXPLAIN
+   of those, and read-only PRAGMAs. Every other statement (ATTACH, DETACH, COPY, EXPORT, INSTALL,
+   LOAD, SET, RESET, USE, CREATE, DROP, INSERT, UPDATE, DELETE, ...) is refused before DuckDB sees
+   it. This layer is needed: DuckDB keeps the attached catalogue's own paths (the file and its
+   .wal) in `allowed_paths`, so `COPY ... TO '<catalogue>.wal'` or `USE memory; DETACH craters;
+   ATTACH '<catalogue>' (READ_WRITE)` would get through layer 2 alone.
+2. The session: an in-memory DuckDB with no temp directory, the catalogue attached READ_ONLY as
+   `craters` (the default database, so it cannot be detached) and the run's Parquet tables
+   registered as lazy Arrow datasets (temporary views, found first by name); then
+   `enable_external_access = false` (no files, extensions, secrets), `autoinstall_known_extensions
+   = false`, `autoload_known_extensions = false` and `lock_configuration = true` (no SET, RESET or
+   PRAGMA can undo them).
+"""
 
 from __future__ import annotations
 
+import csv
+import io
+import json
+import re
+import sys
+import threading
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TextIO
 
 import duckdb
-from rich.console import Console
-from rich.table import Table
+import pyarrow as pa
+import pyarrow.dataset as pads
 
 from pipeline.errors import PipelineError
+from pipeline.io.workspace import Workspace, workspace
+
+DEFAULT_DB = "catalogue/craters.duckdb"
+CATALOGUE_ALIAS = "craters"
+FORMATS = ("table", "csv", "markdown")
+RUN_NAME = re.compile(r"[A-Za-z0-9._-]+")
+MAX_RUN_NAME = 100
+
+READ_ONLY_PRAGMAS = frozenset({
+    "table_info", "show", "show_tables", "show_tables_expanded", "show_databases",
+    "database_list", "database_size", "storage_info", "metadata_info", "version", "platform",
+    "user_agent", "functions", "collations"})
+LOCKDOWN = ("SET enable_external_access = false", "SET autoinstall_known_extensions = false",
+            "SET autoload_known_extensions = false", "SET lock_configuration = true")
+READ_ONLY_NOTE = ("`just sql` is read-only: SELECT, DESCRIBE, SHOW, SUMMARIZE, EXPLAIN, CALL and "
+                  "read-only PRAGMAs over the catalogue and the run's tables")
 
 
-def connect(db_path: Path, run_id: str | None) -> duckdb.DuckDBPyConnection:
-    """A read-only session on the catalogue (so nothing, not even a re-ATTACH, can write); with
-    `run_id`, runs/<run_id>/run.duckdb is attached read-only as `run` and becomes the default
-    schema (the catalogue stays reachable as `craters.<table>`)."""
-    if not db_path.is_file():
-        raise PipelineError(f"{db_path}: no catalogue database; run `just ingest` first")
-    con = duckdb.connect(str(db_path), read_only=True)
-    if run_id is not None:
-        run_db = Path("runs") / run_id / "run.duckdb"
-        if not run_db.is_file():
-            raise PipelineError(f"{run_db}: no run database; run `just run` first")
-        con.execute(f"ATTACH {_quote(str(run_db))} AS run (READ_ONLY)")
-        con.execute("USE run")
-    return con
+class SqlError(PipelineError):
+    """A query failed: syntax error, unknown table or column, a runtime error."""
 
 
-def _quote(text: str) -> str:
+class SqlRefused(SqlError):
+    """A statement would write, or reach outside the catalogue and the run's tables."""
+
+
+class SqlTimeout(SqlError):
+    """A query ran longer than its timeout and was interrupted."""
+
+
+class SqlSessionError(PipelineError):
+    """The session cannot open: bad --run, missing or locked catalogue, unreadable run table."""
+
+
+# --- the session ---------------------------------------------------------------------------------
+
+
+@dataclass
+class Session:
+    """A locked-down connection: the catalogue as `craters`, the run's tables by name."""
+
+    con: duckdb.DuckDBPyConnection
+    catalogue: Path
+    run_id: str | None = None
+    run_tables: dict[str, Path] = field(default_factory=dict)
+
+    def close(self) -> None:
+        self.con.close()
+
+
+def check_run(run_id: str, runs_dir: Path) -> Path:
+    """The folder of run `run_id` (a plain name with a config.json), else SqlSessionError."""
+    shown = repr(run_id if len(run_id) <= 40 else run_id[:40] + "...")
+    if len(run_id) > MAX_RUN_NAME:
+        raise SqlSessionError(f"--run {shown}: longer than {MAX_RUN_NAME} characters")
+    if not RUN_NAME.fullmatch(run_id) or run_id in (".", ".."):
+        raise SqlSessionError(f"--run {shown}: not a run name (letters, digits, '.', '_' and '-'; "
+                              "not '.' or '..')")
+    run_dir = runs_dir / run_id
+    if not run_dir.is_dir():
+        runs = sorted(q.parent.name for q in runs_dir.glob("*/config.json"))
+        known = f"runs: {', '.join(runs[:10])}{', ...' if len(runs) > 10 else ''}" if runs \
+            else "there are no runs yet; `just run` makes one"
+        raise SqlSessionError(f"--run {shown}: no folder {run_dir} ({known})")
+    if not (run_dir / "config.json").is_file():
+        raise SqlSessionError(f"--run {shown}: {run_dir} has no config.json (not a run folder, or "
+                              "none of its stages has run)")
+    return run_dir
+
+
+def run_catalogue(run_dir: Path, ws: Workspace) -> Path:
+    """The catalogue database the run used: the one its ingest stage recorded (catalogue.json),
+    else `catalogue.db_path` of its config.json."""
+    from pipeline.io.store import RunStore
+
+    recorded = RunStore(run_dir.name, root=run_dir.parent).catalogue_db()
+    if recorded is not None:
+        return recorded
+    path = run_dir / "config.json"
+    try:
+        db = json.loads(path.read_text())["catalogue"]["db_path"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SqlSessionError(f"{path}: no catalogue.db_path ({type(exc).__name__}: "
+                              f"{_one_line(str(exc))})") from None
+    if not isinstance(db, str) or not db:
+        raise SqlSessionError(f"{path}: catalogue.db_path is not a path: {db!r}")
+    return ws.resolve(db)
+
+
+def run_tables(run_id: str, runs_dir: Path) -> dict[str, Path]:
+    """The run's tables: name -> Parquet path, as the run store publishes them."""
+    from pipeline.io.store import RunStore
+
+    return RunStore(run_id, root=runs_dir).tables()
+
+
+def open_session(run: str | None = None, db: str | Path | None = None,
+                 ws: Workspace | None = None) -> Session:
+    """A read-only session on catalogue `db` (default: the one run `run` used, else
+    catalogue/craters.duckdb) with the run's tables; relative paths are under the project root."""
+    ws = ws or workspace()
+    tables: dict[str, Path] = {}
+    run_catalogue_db = None
+    if run is not None:
+        run_dir = check_run(run, ws.runs_dir)
+        run_catalogue_db = run_catalogue(run_dir, ws)
+        tables = run_tables(run, ws.runs_dir)
+    catalogue = ws.resolve(db) if db is not None else run_catalogue_db or ws.resolve(DEFAULT_DB)
+    if not catalogue.is_file():
+        used = f" (the catalogue run {run!r} used)" if db is None and run is not None else ""
+        raise SqlSessionError(f"{catalogue}: no catalogue database{used}; run `just ingest` first")
+    con = duckdb.connect(":memory:")
+    try:
+        con.execute("SET temp_directory = ''")  # nothing spills to (or may be written in) a folder
+        _attach(con, catalogue)
+        con.execute(f"USE {CATALOGUE_ALIAS}")
+        for name, path in sorted(tables.items()):
+            try:
+                con.register(name, pads.dataset(str(path), format="parquet"))
+            except (OSError, pa.ArrowException) as exc:
+                raise SqlSessionError(f"run {run!r}: table {name!r} unreadable ({path}: "
+                                      f"{_one_line(str(exc))})") from None
+        for statement in LOCKDOWN:
+            con.execute(statement)
+    except BaseException:
+        con.close()
+        raise
+    return Session(con, catalogue, run, tables)
+
+
+def _attach(con: duckdb.DuckDBPyConnection, catalogue: Path) -> None:
+    try:
+        con.execute(f"ATTACH {_literal(str(catalogue))} AS {CATALOGUE_ALIAS} (READ_ONLY)")
+    except duckdb.Error as exc:
+        text = _one_line(str(exc))
+        if "Could not set lock" in text or "file handle conflict" in text:
+            raise SqlSessionError(f"{catalogue}: the catalogue is locked by another process (an "
+                                  "ingest writing it?); try again when it has finished") from None
+        if "not a valid DuckDB database" in text:
+            raise SqlSessionError(f"{catalogue}: not a DuckDB database") from None
+        raise SqlSessionError(f"{catalogue}: cannot open the catalogue ({text})") from None
+
+
+# --- checking statements -------------------------------------------------------------------------
+
+_EXPLAIN = re.compile(r"\s*EXPLAIN\b\s*(?:ANALY[SZ]E\b\s*)?", re.IGNORECASE)
+_OPTIONS = re.compile(r"\s*\((?:[^()']|'[^']*')*\)\s*")
+_PRAGMA = re.compile(r"\s*PRAGMA\s+\"?([A-Za-z_][A-Za-z0-9_]*)", re.IGNORECASE)
+_KEYWORD = re.compile(r"[A-Za-z_]+")
+
+
+def check_query(query: str) -> list[str]:
+    """The statements of `query`, each a reading one; else SqlRefused (or SqlError if it does
+    not parse)."""
+    statements = _parse(query)
+    if not statements:
+        raise SqlError("no SQL statement in the query")
+    for statement in statements:
+        _check(statement)
+    return [s.query for s in statements]
+
+
+def _parse(query: str) -> list[duckdb.Statement]:
+    try:
+        return duckdb.extract_statements(query)
+    except duckdb.ParserException as exc:
+        raise SqlError(f"SQL syntax error: {_duck_message(exc)}") from None
+    except (duckdb.Error, ValueError) as exc:  # a statement type the Python API does not know
+        raise SqlRefused(f"refused: {_keyword(query)} ({_one_line(str(exc))}); "
+                         f"{READ_ONLY_NOTE}") from None
+
+
+def _check(statement: duckdb.Statement) -> None:
+    kind = statement.type
+    if kind in (duckdb.StatementType.SELECT, duckdb.StatementType.CALL):
+        return
+    if kind == duckdb.StatementType.PRAGMA:
+        m = _PRAGMA.match(statement.query)
+        if m and m.group(1).lower() in READ_ONLY_PRAGMAS:
+            return
+        name = m.group(1) if m else "?"
+        raise SqlRefused(f"refused: PRAGMA {name}; {READ_ONLY_NOTE} "
+                         f"({', '.join(sorted(READ_ONLY_PRAGMAS))})")
+    if kind == duckdb.StatementType.EXPLAIN and _explained_reads(statement.query):
+        return
+    raise SqlRefused(f"refused: {_keyword(statement.query)} statement; {READ_ONLY_NOTE}")
+
+
+def _explained_reads(text: str) -> bool:
+    """True when the statement an EXPLAIN [ANALYZE] [(options)] runs is a reading one."""
+    m = _EXPLAIN.match(text)
+    if not m:
+        return False
+    rest = text[m.end():]
+    candidates = [rest]
+    if o := _OPTIONS.match(rest):
+        candidates.append(rest[o.end():])
+    for candidate in candidates:
+        try:
+            inner = duckdb.extract_statements(candidate)
+        except (duckdb.Error, ValueError):
+            continue
+        if len(inner) == 1:
+            try:
+                _check(inner[0])
+            except SqlRefused:
+                return False
+            return True
+    return False
+
+
+def _keyword(text: str) -> str:
+    m = _KEYWORD.search(text)
+    return m.group(0).upper() if m else "this"
+
+
+# --- running queries -----------------------------------------------------------------------------
+
+
+@dataclass
+class Result:
+    """A query's result: the column names and the rows (an Arrow table)."""
+
+    columns: list[str]
+    table: pa.Table
+
+
+def execute(session: Session, query: str, timeout_s: float = 60.0) -> Result:
+    """Run `query` (checked: reading statements only) and return the last statement's result;
+    interrupted after `timeout_s` seconds (SqlTimeout)."""
+    statements = check_query(query)
+    con = session.con
+    fired = threading.Event()
+
+    def interrupt() -> None:
+        fired.set()
+        con.interrupt()
+
+    timer = threading.Timer(timeout_s, interrupt)
+    timer.daemon = True
+    timer.start()
+    try:
+        for statement in statements[:-1]:
+            con.execute(statement)
+        relation = con.sql(statements[-1])
+        if relation is None:
+            return Result([], pa.table({}))
+        columns, table = relation.columns, relation.to_arrow_table()
+    except duckdb.InterruptException:
+        if fired.is_set():
+            raise SqlTimeout(f"query stopped after {timeout_s:g} s (--timeout-s)") from None
+        raise SqlError("query interrupted") from None
+    except duckdb.Error as exc:
+        raise _translate(exc) from None
+    finally:
+        timer.cancel()
+    return Result(columns, table)
+
+
+def _translate(exc: duckdb.Error) -> SqlError:
+    """A DuckDB error as one clear line (refusals of the locked-down engine say so)."""
+    text = _duck_message(exc)
+    if isinstance(exc, duckdb.PermissionException):
+        return SqlRefused(f"refused: {text}; `just sql` reads only the catalogue and the run's "
+                          "tables (no files, extensions or network)")
+    if "configuration has been locked" in text:
+        return SqlRefused(f"refused: {text}; settings are locked in `just sql`")
+    if "read-only mode" in text:
+        return SqlRefused(f"refused: {text}; the catalogue is opened read-only")
+    if isinstance(exc, duckdb.ParserException):
+        return SqlError(f"SQL syntax error: {text}")
+    if isinstance(exc, duckdb.CatalogException) and "does not exist" in text:
+        return SqlError(f"SQL error: {text} (`just sql` with no query lists the tables)")
+    return SqlError(f"SQL error: {text}")
+
+
+def list_tables(session: Session) -> Result:
+    """One row per table: how to name it, where it is, its row count and its typed columns."""
+    con = session.con
+    rows = con.execute(
+        "SELECT database_name, table_name, string_agg(column_name || ' ' || data_type, ', ' "
+        "ORDER BY column_index) FROM duckdb_columns() WHERE schema_name = 'main' AND "
+        f"database_name IN ('temp', {_literal(CATALOGUE_ALIAS)}) GROUP BY "
+        "database_name, table_name ORDER BY database_name = 'temp' DESC, table_name").fetchall()
+    names, where, counts, columns = [], [], [], []
+    for database, table, cols in rows:
+        in_run = database == "temp"
+        if not in_run and table in session.run_tables:
+            name = f"{CATALOGUE_ALIAS}.{table}"
+        else:
+            name = table
+        (n,) = con.execute(f"SELECT count(*) FROM {_ident(database)}.main.{_ident(table)}"
+                           ).fetchone()
+        names.append(name)
+        where.append(f"run {session.run_id}" if in_run else "catalogue")
+        counts.append(n)
+        columns.append(cols)
+    table = pa.table({"table": pa.array(names, pa.string()), "in": pa.array(where, pa.string()),
+                      "rows": pa.array(counts, pa.int64()),
+                      "columns": pa.array(columns, pa.string())})
+    return Result(table.column_names, table)
+
+
+# --- printing ------------------------------------------------------------------------------------
+
+
+def render(result: Result, fmt: str, out: TextIO, terminal: bool, max_rows: int,
+           title: str | None = None) -> None:
+    """Print `result` as a table (at most `max_rows` rows on a terminal), CSV or Markdown."""
+    if fmt == "csv":
+        out.write(to_csv(result))
+    elif fmt == "markdown":
+        out.write(to_markdown(result))
+    else:
+        _print_table(result, out, terminal, max_rows, title)
+
+
+def to_csv(result: Result) -> str:
+    """CSV: a header line, then every row; NULL is empty, numbers as they are (lossless)."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(result.columns)
+    for row in _rows(result.table):
+        writer.writerow(["" if v is None else _csv_value(v) for v in row])
+    return buf.getvalue()
+
+
+def to_markdown(result: Result) -> str:
+    """A Markdown table of every row; numeric columns right-aligned."""
+    def cell(text: str) -> str:
+        return text.replace("|", "\\|").replace("\r\n", " ").replace("\n", " ")
+
+    numeric = [_is_numeric(t) for t in result.table.schema.types]
+    lines = ["| " + " | ".join(cell(c) for c in result.columns) + " |",
+             "| " + " | ".join("---:" if r else "---" for r in numeric) + " |"]
+    lines += ["| " + " | ".join(cell(_fmt(v)) for v in row) + " |"
+              for row in _rows(result.table)]
+    return "\n".join(lines) + "\n"
+
+
+def _print_table(result: Result, out: TextIO, terminal: bool, max_rows: int,
+                 title: str | None) -> None:
+    numeric = [_is_numeric(t) for t in result.table.schema.types]
+    if not terminal:  # every row, never wrapped or cut
+        out.write(box_table(result.columns, [[_fmt(v) for v in row]
+                                             for row in _rows(result.table)], numeric))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    n = result.table.num_rows
+    shown = result.table.slice(0, max_rows)
+    table = Table(title=title)
+    for name, right in zip(result.columns, numeric, strict=True):
+        table.add_column(name, justify="right" if right else "left", overflow="fold")
+    for row in _rows(shown):
+        table.add_row(*(_fmt(v) for v in row))
+    console = Console(file=out)
+    console.print(table)
+    more = n - shown.num_rows
+    console.print(f"({n:,} rows" + (f"; {more:,} not shown: --max-rows {n} to see all)"
+                                     if more else ")"))
+
+
+def box_table(columns: list[str], rows: list[list[str]], right: list[bool]) -> str:
+    """A plain box-drawn table (the terminal's look, without colour or wrapping)."""
+    cells = [[c.replace("\n", " ") for c in row] for row in [columns, *rows]]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(columns))]
+
+    def line(row: list[str], bar: str) -> str:
+        parts = [c.rjust(w) if r else c.ljust(w)
+                 for c, w, r in zip(row, widths, right, strict=True)]
+        return bar + bar.join(f" {p} " for p in parts) + bar
+
+    def rule(left: str, mid: str, fill: str, end: str) -> str:
+        return left + mid.join(fill * (w + 2) for w in widths) + end
+
+    lines = [rule("┏", "┳", "━", "┓"), line(cells[0], "┃"),
+             rule("┡", "╇", "━", "┩"), *(line(row, "│") for row in cells[1:]),
+             rule("└", "┴", "─", "┘")]
+    return "\n".join(lines) + "\n"
+
+
+def _rows(table: pa.Table):
+    columns = [c.to_pylist() for c in table.columns]
+    return zip(*columns, strict=True) if columns else iter(())
+
+
+def _fmt(value: object) -> str:
+    """A value for people: floats to 10 significant digits, NULL spelled out."""
+    if value is None:
+        return "NULL"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return f"{value:.10g}"
+    return str(value)
+
+
+def _csv_value(value: object) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return repr(value) if isinstance(value, float) else str(value)
+
+
+def _is_numeric(t: pa.DataType) -> bool:
+    return pa.types.is_integer(t) or pa.types.is_floating(t) or pa.types.is_decimal(t)
+
+
+# --- the command ---------------------------------------------------------------------------------
+
+
+def run_query(query: str | None, run: str | None = None, db: str | None = None,
+              fmt: str = "table", max_rows: int = 40, timeout_s: float = 60.0,
+              out: TextIO | None = None, terminal: bool | None = None) -> None:
+    """`just sql`: run `query` (or, without one, list the tables) and print the result."""
+    if fmt not in FORMATS:
+        raise SqlError(f"--format {fmt!r}: use one of {', '.join(FORMATS)}")
+    if max_rows < 1:
+        raise SqlError(f"--max-rows {max_rows}: must be at least 1")
+    if not timeout_s > 0:
+        raise SqlError(f"--timeout-s {timeout_s:g}: must be > 0")
+    if query is not None:
+        check_query(query)  # refuse before opening anything
+    out = sys.stdout if out is None else out
+    terminal = out.isatty() if terminal is None else terminal
+    session = open_session(run, db)
+    try:
+        if query is None:
+            title = f"catalogue {session.catalogue}" + (f", run {run}" if run else "")
+            render(list_tables(session), fmt, out, terminal, max_rows=1_000_000, title=title)
+        else:
+            render(execute(session, query, timeout_s), fmt, out, terminal, max_rows)
+    finally:
+        session.close()
+
+
+# --- helpers -------------------------------------------------------------------------------------
+
+
+def _literal(text: str) -> str:
     """A SQL string literal."""
     return "'" + text.replace("'", "''") + "'"
 
 
-def run_query(query: str, db_path: Path, run_id: str | None, max_rows: int) -> None:
-    con = connect(db_path, run_id)
-    try:
-        rel = con.sql(query)
-    except duckdb.Error as exc:
-        raise PipelineError(f"SQL error: {exc}") from None
-    if rel is None:
-        return
-    columns, rows = rel.columns, rel.limit(max_rows + 1).fetchall()
-    table = Table(*columns, show_lines=False)
-    for row in rows[:max_rows]:
-        table.add_row(*(_fmt(v) for v in row))
-    console = Console()
-    console.print(table)
-    if len(rows) > max_rows:
-        console.print(f"(first {max_rows} rows shown; --max-rows to see more)")
+def _ident(text: str) -> str:
+    """A quoted SQL identifier."""
+    return '"' + text.replace('"', '""') + '"'
 
 
-def _fmt(value: object) -> str:
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    return "NULL" if value is None else str(value)
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+def _duck_message(exc: Exception) -> str:
+    """A DuckDB message on one line, without its `LINE 1: ... ^` pointer."""
+    lines = []
+    for line in str(exc).splitlines():
+        if line.startswith("LINE "):
+            break
+        lines.append(line)
+    return _one_line(" ".join(lines)) or _one_line(str(exc))

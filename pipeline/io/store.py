@@ -107,7 +107,10 @@ def sweep_dead_temporaries(folder: Path) -> list[Path]:
     for p in folder.glob(".tmp-*"):
         m = re.match(r"\.tmp-(\d+)-", p.name)
         if m and not pid_alive(int(m.group(1))):
-            shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
             removed.append(p)
     return removed
 
@@ -143,7 +146,8 @@ class RunStore:
         if not self.run_dir.is_dir():
             return []
         return sorted(p.name for p in self.run_dir.iterdir()
-                      if p.is_symlink() and (p / ENTRY_FILE).is_file())
+                      if p.is_symlink() and not p.name.startswith(".")
+                      and (p / ENTRY_FILE).is_file())
 
     def entry(self, stage: str) -> dict[str, Any] | None:
         """The committed manifest entry of `stage` (None when it never committed)."""

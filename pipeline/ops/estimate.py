@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from pipeline.core.estimators import PoseEstimate, RobustOptions, estimate_pose
+from pipeline.core.estimators import CheckOptions, PoseEstimate, RobustOptions, estimate_pose
 from pipeline.io.tables import quat_columns, xyz, xyz_columns
 
 _STREAM_TAG = 0xE57  # separates the robust estimator's streams from other users of the seed
@@ -56,6 +56,7 @@ class EstimateOptions:
     step_tol_m: float  # Gauss-Newton stops below this position step (m)
     max_iterations: int
     robust: RobustOptions | None  # RANSAC + chi-square gate, or None
+    checks: CheckOptions  # when a fix is ill_conditioned, below_surface or inconsistent
     cap: int | None  # the detection cap the craters were selected under (recorded per row)
 
 
@@ -77,7 +78,7 @@ def estimate_all(craters: UsedCraters, opts: EstimateOptions, seed: int, advance
                                 craters.rho_m[a:b], sigma_bearing=opts.sigma_bearing,
                                 sigma_range_m=opts.sigma_range_m, r_prior_mci_m=prior,
                                 step_tol_m=opts.step_tol_m, max_iterations=opts.max_iterations,
-                                robust=robust, rng=rng)
+                                robust=robust, rng=rng, checks=opts.checks)
             solve_ms = (time.perf_counter() - t0) * 1e3
             prior = est.r_mci_m if est.status == "ok" else None
             rows.append(_row(int(frame), float(craters.t_s[i]), method, est, solve_ms,

@@ -122,9 +122,9 @@ def summarize(scores: pl.DataFrame, wins: tuple[Window, ...]) -> pl.DataFrame:
             for i, q in enumerate(QUANTITY_NAMES):
                 rows.append({
                     "method": method, "window": w.name, "start_s": w.start_s, "end_s": w.end_s,
-                    "quantity": q, "rmse": stats["rmse"][i], "max_abs": stats["max_abs"][i],
-                    "p95_abs": stats["p95_abs"][i], "crlb_rms": crlb_rms[i],
-                    "ratio_to_crlb": stats["rmse"][i] / crlb_rms[i],
+                    "quantity": q, "rmse": stats.rmse[i], "max_abs": stats.max_abs[i],
+                    "p95_abs": stats.p95_abs[i], "crlb_rms": crlb_rms[i],
+                    "ratio_to_crlb": stats.rmse[i] / crlb_rms[i],
                     "share_estimated": float(sel.sum() / inside.sum()) if inside.any() else np.nan,
                     "mean_nees": float(np.nanmean(nees)) if np.isfinite(nees).any() else np.nan,
                     "frames": int(inside.sum()),

@@ -8,7 +8,8 @@ from __future__ import annotations
 import polars as pl
 
 from pipeline.config import RunConfig
-from pipeline.core.estimators import RobustOptions
+from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.estimators import CheckOptions, RobustOptions
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.estimate import EstimateOptions, UsedCraters, estimate_all
@@ -25,6 +26,8 @@ def options(cfg: RunConfig) -> EstimateOptions:
         methods=e.methods,
         sigma_bearing=sigma_bearing, sigma_range_m=sigma_range_m,
         step_tol_m=e.step_tol_m, max_iterations=e.max_iterations, robust=robust,
+        checks=CheckOptions(consistency_probability=e.consistency_probability,
+                            max_condition=e.max_condition, moon_radius_m=MOON_RADIUS_M),
         cap=d.max_craters)
 
 

@@ -4,6 +4,7 @@ The database (`catalogue.db_path`) lives outside the run folder and is shared by
 same catalogue: it is rebuilt only when its `catalogue_meta.key` differs from the catalogue key
 (the catalogue config, the source file's sha256 and format, the catalogue code). The run gets
 `catalogue.json` (which database, which key): later stages check they load that very catalogue.
+The catalogue's recording (the Moon and every crater) is written once, beside the database.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from pipeline.config import RunConfig, config_hash
 from pipeline.engine.fingerprint import code_hash
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.io import catalogue_db as cat
-from pipeline.io.store import now_iso, sha256_file
+from pipeline.io.store import sweep_dead_temporaries
 from pipeline.io.workspace import workspace
 from pipeline.viz import recording
 
@@ -29,22 +30,23 @@ def db_path(cfg: RunConfig) -> Path:
 
 
 def source_fingerprint(cfg: RunConfig) -> dict[str, Any]:
-    """The catalogue source and, for a file, its sha256 (content changes invalidate the key)."""
+    """The catalogue source, its sha256 and its format's description (for the cache key)."""
     c = cfg.catalogue
     if c.source == "synthetic":
-        return {"source": "synthetic", "sha256": None}
+        return cat.source_key("synthetic")
     path = workspace().resolve(c.source)
     if not path.is_file():
         raise cat.CatalogueError(f"{path}: catalogue file not found (catalogue.source)")
-    return {"source": str(path), "sha256": sha256_file(path)}
+    return cat.source_key(path, c.format)
 
 
 def catalogue_key(cfg: RunConfig) -> str:
     """Identity of the database's content: what it was built from and by which code."""
     c = cfg.catalogue
+    f = source_fingerprint(cfg)
     return config_hash("catalogue", c.source, c.format, c.healpix_order, c.max_reject_share,
-                       c.synthetic_min_diam_km, c.synthetic_max_diam_km, c.seed,
-                       source_fingerprint(cfg)["sha256"], code_hash(CATALOGUE_CODE))
+                       c.synthetic_min_diam_km, c.synthetic_max_diam_km, c.seed, f["sha256"],
+                       f["format_sha256"], code_hash(CATALOGUE_CODE))
 
 
 def database_current(cfg: RunConfig, _key: str = "") -> bool:
@@ -54,50 +56,27 @@ def database_current(cfg: RunConfig, _key: str = "") -> bool:
 
 
 def build(cfg: RunConfig, key: str) -> dict[str, Any]:
-    """Read, validate, position and tile the source; write the database. Returns the meta row."""
-    import time
-
-    c = cfg.catalogue
-    t0 = time.perf_counter()
-    fingerprint = source_fingerprint(cfg)
-    if c.source == "synthetic":
-        kept = cat.synthetic_table(c.seed, c.synthetic_min_diam_km, c.synthetic_max_diam_km)
-        rejects = cat.empty_rejects()
-        fmt_name, rows_read, seed = "synthetic", kept.height, c.seed
-    else:
-        path = workspace().resolve(c.source)
-        table = cat.read_table(path)
-        fmt = cat.detect_format(path, table, cat.load_formats(), c.format)
-        kept, rejects = cat.validate(table, fmt)
-        share = fmt.max_reject_share if c.max_reject_share is None else c.max_reject_share
-        cat.check_reject_share(path, fmt, rejects, table.height, share)
-        fmt_name, rows_read, seed = fmt.name, table.height, None
-    craters = cat.with_positions(kept, c.healpix_order)
-    meta = {
-        "key": key, "source_path": fingerprint["source"], "sha256": fingerprint["sha256"],
-        "format": fmt_name, "rows_read": rows_read, "rows_kept": craters.height,
-        "rows_rejected": rejects.height, "healpix_order": c.healpix_order,
-        "generator_seed": seed, "ingest_time": now_iso(),
-        "build_s": round(time.perf_counter() - t0, 3),
-    }
-    cat.write_database(db_path(cfg), craters, rejects, meta)
-    return meta
+    """Read the source once, validate, position and tile it; write the database atomically.
+    Returns the meta row."""
+    return cat.build_from_config(cfg.catalogue, key,
+                                 expected_sha256=source_fingerprint(cfg)["sha256"])
 
 
 def run(ctx: StageContext) -> StageResult:
     cfg, tx = ctx.cfg, ctx.tx
     path = db_path(cfg)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sweep_dead_temporaries(path.parent)
     key = catalogue_key(cfg)
     meta = cat.read_meta(path)
     built = tx.force or meta is None or meta.get("key") != key
     if built:
         meta = build(cfg, key)
     assert meta is not None
-    rrd = path.with_suffix(".rrd")
+    rrd = recording.catalogue_recording_path(path)
     if built or not rrd.is_file():
         craters = cat.load_catalogue(path)
-        with recording.recording(ctx.store.run_id, rrd) as rec:
-            recording.log_ingest(rec, craters.r_mcmf_m, craters.diam_km)
+        recording.log_catalogue(rrd, craters.r_mcmf_m, craters.diam_km, catalogue_id=path.stem)
     facts = {"db_path": str(path), "key": key, "recording": str(rrd), **meta}
     tx.output("catalogue.json").write_text(json.dumps(facts, indent=2, default=str) + "\n")
     tx.rows.update(craters=meta["rows_kept"], rejects=meta["rows_rejected"])
@@ -107,6 +86,7 @@ def run(ctx: StageContext) -> StageResult:
         summary=(
             f"{verb} {path} ({meta['format']}: {meta['rows_kept']:,} craters kept, "
             f"{meta['rows_rejected']:,} rejected of {meta['rows_read']:,} read, "
+            f"{meta.get('rows_duplicate') or 0:,} positional duplicates reported, "
             f"HEALPix order {meta['healpix_order']})",
             f"query it: just sql --db {cfg.catalogue.db_path} \"SELECT count(*) FROM craters\"",
             f"look at it: rerun {rrd}",
@@ -122,6 +102,6 @@ STAGE = Stage(
     outputs=("catalogue.json",),
     code=("pipeline.stages.ingest",),
     run=run,
-    external=lambda cfg: source_fingerprint(cfg)["sha256"],
+    external=source_fingerprint,
     fresh_outside=database_current,
 )

@@ -53,18 +53,20 @@ def run(ctx: StageContext) -> StageResult:
         scores = score_run(trajectory, detections, estimates, catalogue_lookup(db),
                            d.sigma_bearing, d.sigma_range_m, advance)
     summary = summarize(scores, windows(cfg.scoring, t_impact))
+    by_used = report.by_craters_used(scores)
     tx.table("scores", scores)
     tx.table("summary", summary)
+    tx.table("by_craters_used", by_used)
     with recording.recording(ctx.store.run_id, tx.output("scoring.rrd")) as rec:
         recording.log_scoring(rec, scores)
-    recording.blueprint().save(recording.APP_ID, tx.output("layout.rbl"))
+    recording.save_layout(tx.output("layout.rbl"), scores)
     report.write_run_report(tx, cfg, ctx.store.run_id, trajectory, frames_table, scores, summary,
-                            t_impact)
+                            t_impact, by_used=by_used)
     folder = ctx.store.stage_dir("score")
     return StageResult(
         info={"t_impact_s": t_impact, "table_window": cfg.scoring.table_window},
-        summary=(f"wrote {folder / 'scores.parquet'}, {folder / 'summary.parquet'} (tables "
-                 "scores, summary)",
+        summary=(f"wrote {folder / 'scores.parquet'}, {folder / 'summary.parquet'}, "
+                 f"{folder / 'by_craters_used.parquet'} (tables scores, summary, by_craters_used)",
                  f"report: {folder / 'report.md'}",
                  f"look at it: rerun {folder / 'scoring.rrd'}"))
 
@@ -93,7 +95,8 @@ STAGE = Stage(
     reads=("scoring", "detection.sigma_bearing", "detection.sigma_range_m"),
     inputs=("trajectory.parquet", "trajectory.json", "catalogue.json", "detections.parquet",
             "frames.parquet", "estimates.parquet"),
-    outputs=("scores.parquet", "summary.parquet", "scoring.rrd", "layout.rbl", "report.md"),
+    outputs=("scores.parquet", "summary.parquet", "by_craters_used.parquet", "scoring.rrd",
+             "layout.rbl", "report.md"),
     code=("pipeline.stages.score",),
     run=run,
 )

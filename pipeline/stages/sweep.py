@@ -28,7 +28,7 @@ from pipeline.ops.score import CraterLookup, score_run
 from pipeline.ops.sweep import cap_label, table1, table1_markdown
 from pipeline.stages.detect import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.stages.estimate import options
-from pipeline.studies import suslu2025
+from pipeline.studies.suslu2025 import STUDY
 from pipeline.viz import recording, report
 
 _STATE: dict[str, Any] = {}  # per worker process: config, catalogue, trajectory, scratch folder
@@ -102,7 +102,7 @@ def run(ctx: StageContext) -> StageResult:
         p.unlink()
     scratch.rmdir()
     scores = pl.concat(parts)
-    t1 = table1(scores, window, s.methods, s.caps, suslu2025.TABLE1)
+    t1 = table1(scores, window, s.methods, s.caps, STUDY.table1)
     _write_outputs(ctx, scores, t1)
     wall = time.perf_counter() - t0
     folder = ctx.store.stage_dir("sweep")
@@ -128,7 +128,8 @@ def _write_outputs(ctx: StageContext, scores: pl.DataFrame, t1: pl.DataFrame) ->
     figures = {}
     t_s = first["t_s"].to_numpy()
     for method in s.methods:
-        for fig_no, (a, b) in suslu2025.CAP_FIGURE_WINDOWS_S.items():
+        for fig in STUDY.cap_figure_windows:
+            fig_no, a, b = fig.figure, fig.start_s, fig.end_s
             if not ((t_s >= a) & (t_s < b)).any():  # the sweep's frames miss this figure
                 continue
             name = f"fig{fig_no}_{method}_caps_{a:.0f}-{b:.0f}s.png"
@@ -139,7 +140,8 @@ def _write_outputs(ctx: StageContext, scores: pl.DataFrame, t1: pl.DataFrame) ->
         "sweep_id": ctx.store.run_id, "scenario": cfg.name,
         "caps": [cap_label(c) for c in s.caps], "methods": list(s.methods),
         "seeds": list(s.seeds), "window": cfg.scoring.table_window})
-    with recording.recording(ctx.store.run_id, tx.output("sweep.rrd")) as rec:
+    with recording.recording(ctx.store.run_id, tx.output("sweep.rrd"),
+                             layout=recording.sweep_blueprint(s.methods)) as rec:
         recording.log_sweep(rec, first)
 
 

@@ -1,1 +1,2 @@
-"""Rerun recordings, the viewer layout and the Markdown/PNG reports."""
+"""Rerun recordings and the viewer layout (recording), the viewer and headless screenshots
+(viewer), and the Markdown/PNG reports (report)."""

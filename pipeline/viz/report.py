@@ -1,8 +1,11 @@
 """report.md and its figures (matplotlib): the paper's Figs. 4-8 and Table 1, with the CRLB.
 
-Run reports: crater counts against time and altitude (Fig. 4), position and attitude errors
-(Figs. 5-6) with the +-3 sqrt(CRLB) band, and the window tables. Sweep reports: Table 1 beside the
-paper's and position errors per cap (Figs. 7-8).
+Run reports: crater counts against time with the altitude (Fig. 4), position and attitude errors
+(Figs. 5-6) with the +-3 sqrt(CRLB) band, the window tables, and the errors by number of craters
+used (summaries pooled over frames are dominated by the few frames with 3-5 craters). Sweep
+reports: Table 1 beside the paper's and position errors per cap (Figs. 7-8). Published numbers
+come from a study module (`pipeline.studies.suslu2025` by default); labels, units and colours
+from `pipeline.vocab`. Every axis carries one unit.
 """
 
 from __future__ import annotations
@@ -16,27 +19,37 @@ import polars as pl
 from matplotlib.figure import Figure
 
 from pipeline.config import RunConfig
+from pipeline.studies import suslu2025
+from pipeline.studies.suslu2025 import Study
+from pipeline.vocab import (
+    ATTITUDE,
+    COUNT_COLORS,
+    CRLB_COLOR,
+    POSITION,
+    QUANTITIES,
+    Quantity,
+    hex_color,
+    method_color,
+)
 
-POSITION = (("x_m", "X (m)"), ("y_m", "Y (m)"), ("z_m", "Z (m)"))
-ATTITUDE = (("phi_deg", "roll phi (deg)"), ("theta_deg", "pitch theta (deg)"),
-            ("psi_deg", "yaw psi (deg)"))
-METHOD_COLORS = {"paper": "#00aaff", "joint": "#22bb66"}
+STUDY = suslu2025.STUDY
 
-# The paper's Table 1: RMSE over 1,800-2,400 s per crater cap (None: no limit).
-PAPER_TABLE1: dict[int | None, dict[str, float]] = {
-    10: {"x_m": 4.923, "y_m": 9.7451, "z_m": 9.3482, "phi_deg": 0.0039, "theta_deg": 0.0066,
-         "psi_deg": 0.0066},
-    20: {"x_m": 3.2534, "y_m": 6.2719, "z_m": 6.1251, "phi_deg": 0.0026, "theta_deg": 0.0042,
-         "psi_deg": 0.0042},
-    50: {"x_m": 1.9981, "y_m": 3.877, "z_m": 3.6869, "phi_deg": 0.0016, "theta_deg": 0.0025,
-         "psi_deg": 0.0025},
-    100: {"x_m": 1.4021, "y_m": 2.6237, "z_m": 2.6092, "phi_deg": 0.0011, "theta_deg": 0.0018,
-          "psi_deg": 0.0018},
-    200: {"x_m": 0.9739, "y_m": 1.8795, "z_m": 1.8001, "phi_deg": 0.00079, "theta_deg": 0.0012,
-          "psi_deg": 0.0012},
-    None: {"x_m": 0.6111, "y_m": 1.1499, "z_m": 1.1181, "phi_deg": 0.00049,
-           "theta_deg": 0.00076, "psi_deg": 0.00076},
-}
+# Deprecated alias, read by pipeline/sweep.py and tests/test_sweep.py until they switch to
+# `pipeline.studies.suslu2025.TABLE1` (or `suslu2025.paper_rmse(cap, quantity)`).
+PAPER_TABLE1 = suslu2025.TABLE1
+
+# Bins of the number of craters used in a frame (inclusive; None: no upper bound). Frames with
+# fewer than 3 have no estimate; their bin shows how many there are.
+CRATER_BINS: tuple[tuple[int, int | None], ...] = (
+    (0, 2), (3, 5), (6, 10), (11, 20), (21, 50), (51, 100), (101, 200), (201, None))
+
+
+def crater_bin_label(lo: int, hi: int | None) -> str:
+    return f">{lo - 1}" if hi is None else f"{lo}-{hi}"
+
+
+def _hex(method: str) -> str:
+    return hex_color(method_color(method))
 
 
 def _save(fig: Figure, path: Path) -> None:
@@ -52,72 +65,84 @@ def _finish_stack(fig: Figure, subplots, title: str, path: Path) -> None:
     _save(fig, path)
 
 
-def fig_counts(frames_table: pl.DataFrame, path: Path, title: str) -> None:
-    """Fig. 4: visible, identified and used craters per frame against time, with the altitude."""
+def robust_limit(values: np.ndarray, percentile: float = 99.0, spread: float = 1.3) -> float:
+    """Half-range of a symmetric axis from the data's robust spread: `spread` times the
+    `percentile` of |values| (finite ones); 0 when there are none."""
+    v = np.abs(np.asarray(values, dtype=float))
+    v = v[np.isfinite(v)]
+    return float(spread * np.percentile(v, percentile)) if v.size else 0.0
+
+
+def fig_counts(frames_table: pl.DataFrame, path: Path, title: str, study: Study = STUDY) -> None:
+    """Fig. 4: visible, identified and used craters per frame against time (left axis, craters)
+    with the study's reference lines over the times they are about, and the altitude (right
+    axis, km)."""
     t = frames_table["t_s"].to_numpy()
     fig = Figure(figsize=(9, 4.2))
     ax = fig.subplots()
-    for col, label, color in (("n_visible", "visible", "0.35"), ("n_identified", "identified",
-                                                                 "#ff9900"),
-                              ("n_used", "used", "#cc3300")):
-        ax.plot(t, frames_table[col].to_numpy(), label=label, color=color, lw=1)
-    ax.axhline(150, color="0.6", ls=":", lw=1)
-    ax.axhline(900, color="0.6", ls="--", lw=1)
-    ax.text(t[0], 160, "paper: < 150 before 1,500 s", color="0.4", fontsize=8)
-    ax.text(t[0], 910, "paper: peak ~ 900", color="0.4", fontsize=8)
+    for col, label in (("n_visible", "visible"), ("n_identified", "identified"),
+                       ("n_used", "used")):
+        ax.plot(t, frames_table[col].to_numpy(), label=label, lw=1,
+                color=hex_color(COUNT_COLORS[label]) if label != "visible" else "0.35")
+    for ref, style in zip(study.count_refs, (":", "--", "-."), strict=False):
+        a = t[0] if ref.t_from_s is None else ref.t_from_s
+        b = t[-1] if ref.t_to_s is None else ref.t_to_s
+        ax.hlines(ref.value, a, b, color="0.55", ls=style, lw=1)
+        ax.text(a, ref.value * 1.03, ref.label, color="0.4", fontsize=8, va="bottom")
     ax.set_xlabel("time since apoapsis (s)")
     ax.set_ylabel("craters per frame")
+    top = max([float(frames_table["n_visible"].max() or 0)] + [r.value for r in study.count_refs])
+    ax.set_ylim(0, 1.12 * top if top > 0 else 1)
     alt = ax.twinx()
     alt.plot(t, frames_table["altitude_km"].to_numpy(), color="#3366cc", lw=1.2, label="altitude")
     alt.set_ylabel("altitude (km)", color="#3366cc")
+    alt.set_ylim(bottom=0)
     ax.legend(loc="center left")
     ax.set_title(title)
     _save(fig, path)
 
 
-def fig_errors(scores: pl.DataFrame, axes: tuple[tuple[str, str], ...], path: Path, title: str
+def fig_errors(scores: pl.DataFrame, quantities: tuple[Quantity, ...], path: Path, title: str
                ) -> None:
-    """Figs. 5-6: each method's error per axis against time, with the +-3 sqrt(CRLB) band."""
+    """Figs. 5-6: each method's error per axis against time, with the +-3 sqrt(CRLB) band; the
+    y range from the errors' robust spread (99th percentile of |error|, both methods)."""
     fig = Figure(figsize=(9, 7.5))
-    subplots = fig.subplots(len(axes), 1, sharex=True)
+    subplots = fig.subplots(len(quantities), 1, sharex=True)
     methods = scores["method"].unique(maintain_order=True).to_list()
-    for ax, (q, label) in zip(subplots, axes, strict=True):
-        limit = 0.0
+    for ax, q in zip(subplots, quantities, strict=True):
         for k, method in enumerate(methods):
             m = scores.filter(pl.col("method") == method)
             t = m["t_s"].to_numpy()
-            err = m[f"err_{q}"].to_numpy()
             if k == 0:
-                band = 3 * m[f"crlb_{q}"].to_numpy()
-                ax.fill_between(t, -band, band, color="0.85", lw=0, label="+-3 sqrt(CRLB)")
-            ax.plot(t, err, lw=0.7, color=METHOD_COLORS.get(method), label=method)
-            finite = np.abs(err[np.isfinite(err)])
-            if finite.size:
-                limit = max(limit, float(np.percentile(finite, 99)))
+                band = 3 * m[f"crlb_{q.name}"].to_numpy()
+                ax.fill_between(t, -band, band, color=hex_color(CRLB_COLOR), alpha=0.6, lw=0,
+                                label="+-3 sqrt(CRLB)")
+            ax.plot(t, m[f"err_{q.name}"].to_numpy(), lw=0.7, color=_hex(method), label=method)
+        limit = robust_limit(scores[f"err_{q.name}"].to_numpy())
         if limit > 0:
-            ax.set_ylim(-1.3 * limit, 1.3 * limit)
-        ax.set_ylabel(label)
+            ax.set_ylim(-limit, limit)
+        ax.set_ylabel(f"error {q.axis_label}")
         ax.grid(alpha=0.3)
     _finish_stack(fig, subplots, title, path)
 
 
 def _fmt(x: float) -> str:
-    if not np.isfinite(x):
+    if x is None or not np.isfinite(x):
         return "-"
     return f"{x:.3g}" if abs(x) >= 1e-3 else f"{x:.2e}"
 
 
 def window_table(summary: pl.DataFrame) -> str:
     """Markdown: per method and window, RMSE per quantity, share estimated and mean NEES."""
-    head = ("| method | window | frames | estimated | X (m) | Y (m) | Z (m) | phi (deg) | "
-            "theta (deg) | psi (deg) | mean NEES (6) |\n|---|---|---|---|---|---|---|---|---|---|"
-            "---|\n")
+    labels = " | ".join(q.axis_label for q in QUANTITIES)
+    head = (f"| method | window | frames | estimated | {labels} | mean NEES (6) |\n"
+            "|---|---|---|---|" + "---|" * len(QUANTITIES) + "---|\n")
     body = []
     for (method, window), g in summary.group_by("method", "window", maintain_order=True):
         v = dict(zip(g["quantity"].to_list(), g["rmse"].to_list(), strict=True))
         first = g.row(0, named=True)
         body.append(f"| {method} | {window} | {first['frames']} | {first['share_estimated']:.1%} "
-                    f"| " + " | ".join(_fmt(v[q]) for q, _ in POSITION + ATTITUDE)
+                    f"| " + " | ".join(_fmt(v[q.name]) for q in QUANTITIES)
                     + f" | {_fmt(first['mean_nees'])} |")
     return head + "\n".join(body) + "\n"
 
@@ -133,34 +158,163 @@ def crlb_table(summary: pl.DataFrame, window: str) -> str:
         for r in rows.iter_rows(named=True)) + "\n"
 
 
-def count_facts(frames_table: pl.DataFrame) -> str:
-    """The paper's Fig. 4 statements, checked on this run's visible-crater counts."""
+def by_craters_used(scores: pl.DataFrame,
+                    bins: tuple[tuple[int, int | None], ...] = CRATER_BINS) -> pl.DataFrame:
+    """Errors by the number of craters used in a frame. Long table, one row per method, bin and
+    quantity (bins without frames are left out):
+
+    method, craters (bin label, e.g. "6-10"), n_min, n_max (None: open), quantity, frames (in
+    the bin), estimated (frames with status ok), rmse, median_abs (median |error|), p95_abs,
+    crlb_rms (root of the mean CRLB variance over the estimated frames), ratio_to_crlb
+    (rmse / crlb_rms), median_ratio (median of |error| / sqrt(CRLB) per frame), mean_nees.
+
+    Statistics use the estimated frames with a finite error; NaN where there are none."""
+    rows = []
+    for (method,), m in scores.group_by("method", maintain_order=True):
+        n_used = m["n_used"].to_numpy()
+        ok = (m["status"] == "ok").to_numpy()
+        nees_all = m["nees"].to_numpy().astype(float)
+        for lo, hi in bins:
+            inside = (n_used >= lo) & (n_used <= (np.inf if hi is None else hi))
+            if not inside.any():
+                continue
+            sel = inside & ok
+            nees = nees_all[sel]
+            nees = nees[np.isfinite(nees)]
+            for q in QUANTITIES:
+                err = m[f"err_{q.name}"].to_numpy().astype(float)[sel]
+                crlb = m[f"crlb_{q.name}"].to_numpy().astype(float)[sel]
+                good = np.isfinite(err)
+                e, c = err[good], crlb[good]
+                rmse = float(np.sqrt(np.mean(e**2))) if e.size else np.nan
+                cfin = c[np.isfinite(c) & (c > 0)]
+                crlb_rms = float(np.sqrt(np.mean(cfin**2))) if cfin.size else np.nan
+                both = np.isfinite(c) & (c > 0)
+                rows.append({
+                    "method": method, "craters": crater_bin_label(lo, hi), "n_min": lo,
+                    "n_max": hi, "quantity": q.name, "frames": int(inside.sum()),
+                    "estimated": int(sel.sum()), "rmse": rmse,
+                    "median_abs": float(np.median(np.abs(e))) if e.size else np.nan,
+                    "p95_abs": float(np.percentile(np.abs(e), 95)) if e.size else np.nan,
+                    "crlb_rms": crlb_rms,
+                    "ratio_to_crlb": rmse / crlb_rms if np.isfinite(crlb_rms) else np.nan,
+                    "median_ratio": float(np.median(np.abs(e[both]) / c[both]))
+                    if both.any() else np.nan,
+                    "mean_nees": float(np.mean(nees)) if nees.size else np.nan,
+                })
+    schema = {"method": pl.String, "craters": pl.String, "n_min": pl.Int64, "n_max": pl.Int64,
+              "quantity": pl.String, "frames": pl.Int64, "estimated": pl.Int64,
+              "rmse": pl.Float64, "median_abs": pl.Float64, "p95_abs": pl.Float64,
+              "crlb_rms": pl.Float64, "ratio_to_crlb": pl.Float64, "median_ratio": pl.Float64,
+              "mean_nees": pl.Float64}
+    return pl.DataFrame(rows, schema=schema)
+
+
+def craters_used_table(by_used: pl.DataFrame) -> str:
+    """Markdown: per method and bin of craters used, per quantity "RMSE / median |error|
+    (RMSE / sqrt(CRLB))", and the mean NEES."""
+    labels = " | ".join(q.axis_label for q in QUANTITIES)
+    head = (f"| method | craters used | frames | estimated | {labels} | mean NEES (6) |\n"
+            "|---|---|---|---|" + "---|" * len(QUANTITIES) + "---|\n")
+    body = []
+    for (method, craters), g in by_used.group_by("method", "craters", maintain_order=True):
+        r = {row["quantity"]: row for row in g.iter_rows(named=True)}
+        first = g.row(0, named=True)
+
+        def cell(q: Quantity, r=r) -> str:
+            x = r.get(q.name)
+            if x is None or not np.isfinite(x["rmse"]):
+                return "-"
+            ratio = f" ({x['ratio_to_crlb']:.2f})" if np.isfinite(x["ratio_to_crlb"]) else ""
+            return f"{_fmt(x['rmse'])} / {_fmt(x['median_abs'])}{ratio}"
+
+        body.append(f"| {method} | {craters} | {first['frames']} | {first['estimated']} | "
+                    + " | ".join(cell(q) for q in QUANTITIES)
+                    + f" | {_fmt(first['mean_nees'])} |")
+    return head + "\n".join(body) + "\n"
+
+
+def fig_craters_used(by_used: pl.DataFrame, path: Path, title: str) -> None:
+    """RMSE (position, m; attitude, deg; log scales) and RMSE / sqrt(CRLB) against the bin of
+    craters used, per method (colour) and quantity (marker)."""
+    fig = Figure(figsize=(9, 7.5))
+    subplots = fig.subplots(3, 1, sharex=True)
+    labels = by_used.select("n_min", "craters").unique().sort("n_min")["craters"].to_list()
+    where = {c: i for i, c in enumerate(labels)}
+    markers = dict(zip([q.name for q in QUANTITIES], "osD^vx", strict=True))
+    for (method,), m in by_used.group_by("method", maintain_order=True):
+        for q in QUANTITIES:
+            g = m.filter(pl.col("quantity") == q.name)
+            x = [where[c] for c in g["craters"].to_list()]
+            ax = subplots[0] if q in POSITION else subplots[1]
+            ax.plot(x, g["rmse"].to_numpy(), marker=markers[q.name], lw=0.8, ms=4,
+                    color=_hex(method), label=f"{method} {q.label}")
+            subplots[2].plot(x, g["ratio_to_crlb"].to_numpy(), marker=markers[q.name], lw=0.6,
+                             ms=4, color=_hex(method))
+    subplots[0].set_ylabel("position RMSE (m)")
+    subplots[1].set_ylabel("attitude RMSE (deg)")
+    subplots[2].set_ylabel("RMSE / sqrt(CRLB)")
+    subplots[2].axhline(1.0, color="0.5", ls="--", lw=1)
+    for ax in subplots[:2]:
+        if (by_used["rmse"].drop_nans().drop_nulls() > 0).any():
+            ax.set_yscale("log")
+    for ax in subplots:
+        ax.grid(alpha=0.3)
+    subplots[0].legend(loc="upper right", ncol=2, fontsize=7)
+    subplots[1].legend(loc="upper right", ncol=2, fontsize=7)
+    subplots[0].set_title(title)
+    subplots[-1].set_xticks(range(len(labels)), labels)
+    subplots[-1].set_xlabel("craters used in the frame")
+    _save(fig, path)
+
+
+def count_facts(frames_table: pl.DataFrame, study: Study = STUDY) -> str:
+    """The study's Fig. 4 statements, checked on this run's visible-crater counts."""
     t = frames_table["t_s"].to_numpy()
     n = frames_table["n_visible"].to_numpy()
     if n.size == 0:
         return "No frames.\n"
-    early = n[t < 1500]
+    lines = []
+    for ref in study.count_refs:
+        inside = np.ones(t.size, bool)
+        if ref.t_from_s is not None:
+            inside &= t >= ref.t_from_s
+        if ref.t_to_s is not None:
+            inside &= t < ref.t_to_s
+        span = (f"{'start' if ref.t_from_s is None else f'{ref.t_from_s:,.0f} s'}-"
+                f"{'end' if ref.t_to_s is None else f'{ref.t_to_s:,.0f} s'}")
+        if inside.any():
+            k = int(np.flatnonzero(inside)[n[inside].argmax()])
+            lines.append(f"- max visible craters in {span}: {n[k]} at t = {t[k]:.0f} s, "
+                         f"altitude {frames_table['altitude_km'][k]:.1f} km ({ref.label})")
+        else:
+            lines.append(f"- no frames in {span} ({ref.label})")
     peak = int(n.argmax())
-    return (f"- max visible craters before 1,500 s: {early.max() if early.size else '-'} "
-            "(paper: fewer than 150)\n"
-            f"- peak visible craters: {n[peak]} at t = {t[peak]:.0f} s, altitude "
-            f"{frames_table['altitude_km'][peak]:.1f} km (paper: ~900 between 1,500 and 2,850 s)\n"
-            f"- visible craters at the last frame (t = {t[-1]:.0f} s): {n[-1]}; mean used per "
-            f"frame {frames_table['n_used'].mean():.1f}\n")
+    lines.append(f"- peak visible craters: {n[peak]} at t = {t[peak]:.0f} s, altitude "
+                 f"{frames_table['altitude_km'][peak]:.1f} km")
+    lines.append(f"- visible craters at the last frame (t = {t[-1]:.0f} s): {n[-1]}; mean used "
+                 f"per frame {frames_table['n_used'].mean():.1f}")
+    return "\n".join(lines) + "\n"
 
 
 def write_run_report(tx, cfg: RunConfig, run_id: str, trajectory: pl.DataFrame,
                      frames_table: pl.DataFrame, scores: pl.DataFrame, summary: pl.DataFrame,
-                     t_impact_s: float) -> None:
-    """report.md and its figures, written through the stage transaction."""
+                     t_impact_s: float, by_used: pl.DataFrame | None = None,
+                     study: Study = STUDY) -> None:
+    """report.md and its figures, written through the stage transaction (`tx.output(name)`
+    gives the path to write `name` to). `by_used` is `by_craters_used(scores)` (computed here
+    when not given)."""
     d = cfg.detection
     cap = "no limit" if d.max_craters is None else f"{d.max_craters} ({d.selection})"
+    by_used = by_craters_used(scores) if by_used is None else by_used
     fig_counts(frames_table, tx.output("fig4_craters.png"),
-               f"Visible craters and altitude ({run_id})")
+               f"Visible craters and altitude ({run_id})", study)
     fig_errors(scores, POSITION, tx.output("fig5_position_errors.png"),
                f"Position errors, MCI axes ({run_id}, cap {cap})")
     fig_errors(scores, ATTITUDE, tx.output("fig6_attitude_errors.png"),
                f"Attitude errors, 3-2-1 Euler angles of R_true^T R_est ({run_id}, cap {cap})")
+    fig_craters_used(by_used, tx.output("fig_craters_used.png"),
+                     f"Errors by craters used ({run_id}, all frames)")
     text = f"""# Run `{run_id}` (scenario `{cfg.name}`)
 
 Catalogue `{cfg.catalogue.source}`; field of view {d.fov_deg:g} deg ({d.fov_convention});
@@ -173,7 +327,7 @@ noise: bearing {d.sigma_bearing:g}, range {d.sigma_range_m:g} m; false matches
 
 ![craters](fig4_craters.png)
 
-{count_facts(frames_table)}
+{count_facts(frames_table, study)}
 ## Errors (the paper's Figs. 5 and 6)
 
 ![position errors](fig5_position_errors.png)
@@ -189,7 +343,16 @@ normalised estimation error squared of each method's own 6x6 covariance (6 when 
 The bound for the craters actually used in each frame (true pose, ranges and bearings with their
 noise, position and attitude jointly); sqrt(CRLB) is the root of its mean over the window.
 
-{crlb_table(summary, cfg.scoring.table_window)}"""
+{crlb_table(summary, cfg.scoring.table_window)}
+## By number of craters used (all frames)
+
+A pooled RMSE is dominated by the few frames with 3-5 craters (a sparse catalogue, the last
+seconds before impact); here each bin of craters used stands alone. Cells: RMSE / median
+|error| (RMSE / sqrt(CRLB)).
+
+![errors by craters used](fig_craters_used.png)
+
+{craters_used_table(by_used)}"""
     tx.output("report.md").write_text(text)
 
 
@@ -220,16 +383,20 @@ about inertial axes.
 def fig_caps(errors: pl.DataFrame, method: str, caps: list[str], t0: float, t1: float,
              path: Path, title: str) -> None:
     """Figs. 7-8: position errors per cap (drawn in the order given, the last on top) against
-    time in [t0, t1) for one method."""
+    time in [t0, t1) for one method; y range from the robust spread of the window's errors (the
+    largest cap's spikes do not flatten the others). Windows: `study.cap_figure_windows`."""
     fig = Figure(figsize=(9, 7.5))
     subplots = fig.subplots(3, 1, sharex=True)
     m = errors.filter((pl.col("method") == method) & (pl.col("t_s") >= t0) & (pl.col("t_s") < t1))
     colors = matplotlib.colormaps["viridis"](np.linspace(0, 0.9, len(caps)))
-    for ax, (q, label) in zip(subplots, POSITION, strict=True):
+    for ax, q in zip(subplots, POSITION, strict=True):
         for cap, color in zip(caps, colors, strict=True):
             c = m.filter(pl.col("cap_label") == cap)
-            ax.plot(c["t_s"].to_numpy(), c[f"err_{q}"].to_numpy(), lw=0.7, color=color,
+            ax.plot(c["t_s"].to_numpy(), c[f"err_{q.name}"].to_numpy(), lw=0.7, color=color,
                     label=f"cap {cap}")
-        ax.set_ylabel(label)
+        limit = robust_limit(m[f"err_{q.name}"].to_numpy()) if m.height else 0.0
+        if limit > 0:
+            ax.set_ylim(-limit, limit)
+        ax.set_ylabel(f"error {q.axis_label}")
         ax.grid(alpha=0.3)
     _finish_stack(fig, subplots, title, path)

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.constants import MOON_RADIUS_M as R
 from pipeline.core import camera
+from pipeline.core.constants import MOON_RADIUS_M as R
 
 CORNER = camera.FieldOfView.from_config(45.0, "corner_half_angle")
 FULL = camera.FieldOfView.from_config(45.0, "full_angle")

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.constants import MOON_RADIUS_M as R
 from pipeline.core import camera, tiling
+from pipeline.core.constants import MOON_RADIUS_M as R
 from pipeline.core.detection import DetectionModel, detect_frame, frame_rngs
 
 ORDER = 6

@@ -17,12 +17,15 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from pipeline.constants import MOON_RADIUS_M
 from pipeline.core import estimators as est
-from pipeline.core import frames, measurement
+from pipeline.core import frames, measurement, rotations
+from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.estimators.quest import _quest_solve
+from pipeline.core.status import STATUSES
 
 SIGMA_B = 1e-4  # rad per component
 SIGMA_R = 10.0  # m
+OPTIONS = est.EstimatorOptions(sigma_bearing=SIGMA_B, sigma_range_m=SIGMA_R)
 ROBUST = est.RobustOptions(gate_probability=0.9999, max_hypotheses=64, confidence=0.999)
 
 
@@ -77,30 +80,12 @@ def pose(method, c, u, rho, **kw) -> est.PoseEstimate:
 
 
 def assert_failed(e: est.PoseEstimate, status: str, n: int) -> None:
-    assert e.status == status and status in est.STATUSES
+    assert e.status == status and status in STATUSES
     assert e.r_mci_m.shape == (3,) and np.isnan(e.r_mci_m).all()
     assert e.q_mci_from_body.shape == (4,) and np.isnan(e.q_mci_from_body).all()
     assert e.cov.shape == (6, 6) and np.isnan(e.cov).all()
     assert e.att_cov_quest.shape == (3, 3) and np.isnan(e.att_cov_quest).all()
     assert e.inliers.shape == (n,) and e.inliers.dtype == bool
-
-
-# --------------------------------------------------------------------------------------------
-# Rotation helpers
-
-def test_quaternion_helpers_match_scipy():
-    rng = np.random.default_rng(1)
-    for _ in range(50):
-        p, q = Rotation.random(2, random_state=rng).as_quat()
-        np.testing.assert_allclose(est.dcm_from_q(q), Rotation.from_quat(q).as_matrix(),
-                                   atol=1e-15)
-        np.testing.assert_allclose(est.dcm_from_q(est.q_multiply(p, q)),
-                                   (Rotation.from_quat(p) * Rotation.from_quat(q)).as_matrix(),
-                                   atol=1e-15)
-    for angle in (0.0, 1e-9, 1e-5, 1e-4, 2e-4, 0.3, 3.0):
-        theta = angle * np.array([0.48, -0.6, 0.64])
-        np.testing.assert_allclose(est.dcm_from_q(est.q_exp(theta)),
-                                   Rotation.from_rotvec(theta).as_matrix(), atol=1e-16)
 
 
 # --------------------------------------------------------------------------------------------
@@ -162,7 +147,7 @@ def test_quest_near_180_degrees_uses_sequential_rotations(axis, angle, noise):
     weights = np.full(8, 1e8)
     # the direct solution is refused here (|q4| < QUEST_MIN_SCALAR): the answer below comes
     # from a frame rotated by 180 degrees
-    assert est._quest_solve(_wahba_profile(obs, ref, weights)) is None
+    assert _quest_solve(_wahba_profile(obs, ref, weights)) is None
     q, cov = est.quest(obs, ref, weights)
     wahba, _ = Rotation.align_vectors(ref, obs, weights=weights)
     assert (Rotation.from_quat(q).inv() * wahba).magnitude() < 1e-12
@@ -264,9 +249,9 @@ def _predict(r, rot: Rotation, c):
 def test_measurement_jacobians_match_central_differences():
     rng = np.random.default_rng(5)
     r, dcm, c = make_frame(rng, 20, alt_m=60e3)
-    q = frames.q_from_dcm(dcm)
+    q = rotations.q_from_dcm(dcm)
     rot = Rotation.from_quat(q)
-    rho, u, drho_dr, du_dr, du_dth = est.measurement_jacobians(r, q, c)
+    u, rho, drho_dr, du_dr, du_dth = measurement.jacobians(r, q, c)
     rho_ref, u_ref = _predict(r, rot, c)
     np.testing.assert_allclose(rho, rho_ref, rtol=1e-14)
     np.testing.assert_allclose(u, u_ref, atol=1e-15)
@@ -286,7 +271,7 @@ def test_measurement_jacobians_match_central_differences():
 def test_fisher_information_matches_finite_difference_jacobians():
     rng = np.random.default_rng(6)
     r, dcm, c = make_frame(rng, 15, alt_m=120e3)
-    q = frames.q_from_dcm(dcm)
+    q = rotations.q_from_dcm(dcm)
     rot = Rotation.from_quat(q)
     _, u = _predict(r, rot, c)
     jac = np.zeros((c.shape[0], 4, 6))  # per crater: range row, three bearing rows
@@ -309,7 +294,7 @@ def test_fisher_information_matches_finite_difference_jacobians():
 
 def test_crlb_is_nan_without_enough_information(frame30):
     r, dcm, c, _, _ = frame30
-    q = frames.q_from_dcm(dcm)
+    q = rotations.q_from_dcm(dcm)
     for craters in (c[:0], c[:2], c[[0, 1, 0]]):
         bound = est.crlb(r, q, craters, sigma_bearing=SIGMA_B, sigma_range_m=SIGMA_R)
         assert bound.shape == (6, 6) and np.isnan(bound).all()
@@ -343,8 +328,8 @@ def test_quest_position_sensitivity_matches_central_differences(noisy):
     fd = np.zeros((3, 3))
     for k in range(3):
         e = np.eye(3)[k]
-        fd[:, k] = (att_error(frames.dcm_from_q(q0), attitude(r + e)[0])
-                    - att_error(frames.dcm_from_q(q0), attitude(r - e)[0])) / 2.0
+        fd[:, k] = (att_error(rotations.dcm_from_q(q0), attitude(r + e)[0])
+                    - att_error(rotations.dcm_from_q(q0), attitude(r - e)[0])) / 2.0
     # exact derivative at a noiseless optimum; with noise the first-order formula is off by
     # O(bearing noise / crater spread) ~ 1e-4 relative
     rtol = 1e-3 if noisy else 1e-7
@@ -358,7 +343,7 @@ def test_quest_position_sensitivity_matches_central_differences(noisy):
 def test_covariances_are_consistent_and_joint_reaches_the_crlb(n, alt_m):
     rng = np.random.default_rng(50 + n)
     r, dcm, c = make_frame(rng, n, alt_m=alt_m)
-    q_true = frames.q_from_dcm(dcm)
+    q_true = rotations.q_from_dcm(dcm)
     bound = est.crlb(r, q_true, c, sigma_bearing=SIGMA_B, sigma_range_m=SIGMA_R)
     ref_true = (c - r) / np.linalg.norm(c - r, axis=1, keepdims=True)
     weights = np.full(n, SIGMA_B**-2)
@@ -472,13 +457,17 @@ def test_hopelessly_ill_conditioned_geometry_is_degenerate():
 def test_weak_geometry_converges_at_the_rounding_floor():
     """30 m off the plane: the position is still fixed (sigma ~ 50 km along the weak direction),
     but rounding alone makes steps of ~1e-8 m there, above the 1e-9 m tolerance; the rounding
-    floor lets both Gauss-Newton loops stop at the exact noiseless answer."""
+    floor lets both Gauss-Newton loops stop at the exact noiseless answer. Such a bound is too wide
+    for the linearised model (`ill_conditioned` under the default checks), so the linearity test
+    is switched off to see the solvers."""
     rng = np.random.default_rng(64)
+    no_linearity = est.CheckOptions(max_relative_sigma=np.inf)
     for _ in range(10):
         r, dcm, c = _bent_line(rng, 30.0)
         u, rho = measure(None, r, dcm, c)
         for method in est.METHODS:
-            e = pose(method, c, u, rho)
+            assert pose(method, c, u, rho).status == "ill_conditioned"
+            e = pose(method, c, u, rho, checks=no_linearity)
             assert e.status == "ok"
             assert np.linalg.norm(e.r_mci_m - r) < 1e-6
             assert np.sqrt(np.linalg.eigvalsh(e.cov[:3, :3])[-1]) > 1e3
@@ -527,10 +516,9 @@ def test_non_finite_rows_are_excluded(frame30):
 
 def test_joint_from_a_failed_initial_keeps_its_status(frame30):
     _, _, c, u, rho = frame30
-    failed = est.estimate_paper(c[:2], u[:2], rho[:2], sigma_bearing=SIGMA_B,
-                                sigma_range_m=SIGMA_R)
-    e = est.estimate_joint(c[:2], u[:2], rho[:2], sigma_bearing=SIGMA_B, sigma_range_m=SIGMA_R,
-                           initial=failed)
+    use = np.ones(2, dtype=bool)
+    failed = est.PaperEstimator(OPTIONS).fit(c[:2], u[:2], rho[:2], use, None)
+    e = est.JointEstimator(OPTIONS).refine(c[:2], u[:2], rho[:2], use, failed)
     assert_failed(e, "too_few_craters", 2)
     assert e.iterations == 0
 
@@ -543,8 +531,8 @@ def test_iteration_cap_gives_not_converged(frame30):
     assert pose("joint", c, u, rho, r_prior_mci_m=r + 5e3, max_iterations=1).iterations == 0
     good = pose("paper", c, u, rho)
     off = dataclasses.replace(good, r_mci_m=good.r_mci_m + 500.0)
-    e = est.estimate_joint(c, u, rho, sigma_bearing=SIGMA_B, sigma_range_m=SIGMA_R, initial=off,
-                           max_iterations=1)
+    e = est.JointEstimator(dataclasses.replace(OPTIONS, max_iterations=1)).refine(
+        c, u, rho, np.ones(30, dtype=bool), off)
     assert_failed(e, "not_converged", 30)
     assert e.iterations == 1
 
@@ -559,9 +547,9 @@ def test_contract_violations_raise(frame30):
 
 def test_joint_iterations_are_its_own(frame30):
     _, _, c, u, rho = frame30
-    paper = est.estimate_paper(c, u, rho, sigma_bearing=SIGMA_B, sigma_range_m=SIGMA_R)
-    joint = est.estimate_joint(c, u, rho, sigma_bearing=SIGMA_B, sigma_range_m=SIGMA_R,
-                               initial=paper)
+    use = np.ones(30, dtype=bool)
+    paper = est.PaperEstimator(OPTIONS).fit(c, u, rho, use, None)
+    joint = est.JointEstimator(OPTIONS).refine(c, u, rho, use, paper)
     via_pose = pose("joint", c, u, rho)
     assert via_pose.iterations == joint.iterations
     np.testing.assert_array_equal(via_pose.r_mci_m, joint.r_mci_m)
@@ -600,7 +588,7 @@ def test_absolute_orientation_recovers_the_pose_from_three_craters():
 @pytest.mark.parametrize("method", est.METHODS)
 def test_robust_rejects_false_matches(method):
     rng = np.random.default_rng(71)
-    sq = {k: [] for k in ("clean", "dirty", "robust")}
+    sq: dict[str, list] = {k: [] for k in ("clean", "robust")}
     true_pos = false_pos = false_neg = 0
     for f in range(120):
         n = int(rng.integers(15, 60))
@@ -612,6 +600,9 @@ def test_robust_rejects_false_matches(method):
         runs = (("clean", c, None), ("dirty", c_dirty, None), ("robust", c_dirty, ROBUST))
         for key, cat, robust in runs:
             e = pose(method, cat, u, rho, robust=robust, rng=np.random.default_rng(f))
+            if key == "dirty":  # the plain method says that its fix is wrong
+                assert e.status == ("inconsistent" if wrong.any() else "ok")
+                continue
             assert e.status == "ok"
             err = pose_error(r, dcm, e)
             sq[key].append([err[:3] @ err[:3], err[3:] @ err[3:]])
@@ -621,7 +612,6 @@ def test_robust_rejects_false_matches(method):
                 false_neg += np.sum(e.inliers & wrong)
     rms = {k: np.sqrt(np.mean(v, axis=0)) for k, v in sq.items()}
     assert np.all(rms["robust"] < 1.2 * rms["clean"]), rms
-    assert np.all(rms["dirty"] > 10 * rms["clean"]), rms
     precision = true_pos / (true_pos + false_pos)
     recall = true_pos / (true_pos + false_neg)
     assert true_pos > 300 and recall == 1.0 and precision > 0.99, (precision, recall)
@@ -668,7 +658,7 @@ def test_robust_on_clean_data_keeps_the_craters_and_the_plain_result(method):
         total += n
         if rob.inliers.all():
             assert np.linalg.norm(rob.r_mci_m - plain.r_mci_m) < 1e-6
-            assert np.linalg.norm(att_error(frames.dcm_from_q(plain.q_mci_from_body),
+            assert np.linalg.norm(att_error(rotations.dcm_from_q(plain.q_mci_from_body),
                                             rob.q_mci_from_body)) < 1e-10
             np.testing.assert_allclose(rob.cov, plain.cov, rtol=1e-6, atol=1e-20)
     assert kept >= 0.995 * total
@@ -676,12 +666,13 @@ def test_robust_on_clean_data_keeps_the_craters_and_the_plain_result(method):
 
 def test_robust_refuses_three_craters_with_a_false_match():
     """With 3 craters no consensus can vouch for a pose: one false match leaves no consistent
-    triple, so the robust mode reports too_few_craters where the plain method is silently off."""
+    triple, so the robust mode reports too_few_craters; the plain method's fix fails its residual
+    test."""
     rng = np.random.default_rng(75)
     r, dcm, c = make_frame(rng, 3, alt_m=100e3)
     u, rho = measure(rng, r, dcm, c)
     c[1] = displace(rng, c[1:2])[0]
-    assert np.linalg.norm(pose("paper", c, u, rho).r_mci_m - r) > 100.0
+    assert_failed(pose("paper", c, u, rho), "inconsistent", 3)
     for method in est.METHODS:
         rob = pose(method, c, u, rho, robust=ROBUST, rng=np.random.default_rng(0))
         assert_failed(rob, "too_few_craters", 3)

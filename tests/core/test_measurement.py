@@ -125,3 +125,79 @@ def test_true_bearings_are_the_same_in_mci_and_mcmf():
         assert rho_mci[i] == pytest.approx(np.sqrt(d @ d), rel=1e-15)
         np.testing.assert_allclose(u_mci[i], rot.apply(d / np.sqrt(d @ d)), rtol=0, atol=1e-15)
     np.testing.assert_allclose(np.linalg.norm(u_mci, axis=1), 1.0, rtol=1e-15)
+
+
+# --------------------------------------------------------------------------------------------
+# The navigator's model: h(x), the whitened Jacobian against central differences, residuals
+
+def _pose_and_craters(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray,
+                                                                  np.ndarray]:
+    """A position 80 km above the sphere, a random attitude, craters on the sphere below."""
+    up = random_units(rng, 1)[0]
+    r = (R_M + 80e3) * up
+    c = (up + 0.05 * rng.normal(size=(n, 3))) * R_M
+    c *= R_M / np.linalg.norm(c, axis=1, keepdims=True)
+    return r, Rotation.random(random_state=rng).as_quat(), c
+
+
+def test_predict_is_the_simulators_truth():
+    rng = np.random.default_rng(7)
+    r, q, c = _pose_and_craters(rng, 40)
+    u, rho = measurement.predict(r, q, c)
+    u_true, rho_true = measurement.true_bearings(c, r, Rotation.from_quat(q).as_matrix().T)
+    np.testing.assert_allclose(u, u_true, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(rho, rho_true, rtol=1e-15)
+
+
+def _whitened_residuals(r, rot: Rotation, c, u_meas, rho_meas):
+    """Independent whitened residuals: range, and the bearing error in a fixed tangent basis of
+    the measured bearing (its tangent part to first order; what the whitened Jacobian predicts
+    after projecting it into the same basis)."""
+    d = c - r
+    rho = np.linalg.norm(d, axis=1)
+    u = rot.inv().apply(d / rho[:, None])
+    return (rho_meas - rho) / SIGMA_RANGE_M, (u_meas - u) / SIGMA_BEARING
+
+
+def test_whitened_jacobian_matches_central_differences():
+    rng = np.random.default_rng(8)
+    r, q, c = _pose_and_craters(rng, 25)
+    rot = Rotation.from_quat(q)
+    u_meas, rho_meas = measurement.predict(r, q, c)
+    e, jac, rho_pred = measurement.whitened_system(r, q, c, u_meas, rho_meas,
+                                                   sigma_bearing=SIGMA_BEARING,
+                                                   sigma_range_m=SIGMA_RANGE_M)
+    np.testing.assert_allclose(e, 0.0, atol=1e-9)
+    np.testing.assert_array_equal(rho_pred, rho_meas)
+    # d e / d x = -J; steps: 1 m in position, 1e-6 rad in attitude (truncation ~h^2/rho^2)
+    for k in range(6):
+        h = 1.0 if k < 3 else 1e-6
+        step = np.eye(3)[k % 3] * h
+        if k < 3:
+            plus = _whitened_residuals(r + step, rot, c, u_meas, rho_meas)
+            minus = _whitened_residuals(r - step, rot, c, u_meas, rho_meas)
+        else:
+            plus = _whitened_residuals(r, rot * Rotation.from_rotvec(step), c, u_meas, rho_meas)
+            minus = _whitened_residuals(r, rot * Rotation.from_rotvec(-step), c, u_meas, rho_meas)
+        np.testing.assert_allclose(-jac[:, 0, k], (plus[0] - minus[0]) / (2 * h), rtol=1e-7,
+                                   atol=1e-9)
+        np.testing.assert_allclose(-jac[:, 1:, k], (plus[1] - minus[1]) / (2 * h), rtol=1e-7,
+                                   atol=1e-8 if k < 3 else 1e-5)  # rounding ~eps / h / sigma
+    # bearing rows are tangent to the predicted bearing (rank 2)
+    np.testing.assert_allclose(np.einsum("na,nak->nk", u_meas, jac[:, 1:, :]), 0.0, atol=1e-9)
+
+
+def test_normalised_residuals_are_chi_square_with_3_dof_at_the_truth():
+    rng = np.random.default_rng(9)
+    n = 100_000
+    r, q, c = _pose_and_craters(rng, n)
+    u, rho = measurement.predict(r, q, c)
+    u_meas, rho_meas = measurement.measure(rng, u, rho, SIGMA_BEARING, SIGMA_RANGE_M)
+    s = measurement.squared_normalised_residuals(r, q, c, u_meas, rho_meas,
+                                                 sigma_bearing=SIGMA_BEARING,
+                                                 sigma_range_m=SIGMA_RANGE_M)
+    e, _, _ = measurement.whitened_system(r, q, c, u_meas, rho_meas, sigma_bearing=SIGMA_BEARING,
+                                          sigma_range_m=SIGMA_RANGE_M)
+    np.testing.assert_allclose(s, np.sum(e**2, axis=1), rtol=1e-12)
+    lo, hi = chi2_bounds(3 * n, ALPHA)
+    assert lo <= s.sum() <= hi

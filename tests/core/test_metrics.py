@@ -244,18 +244,18 @@ def test_window_stats_match_numpy_on_the_finite_rows():
     finite = values[np.all(np.isfinite(values), axis=1)]
     assert 300 < finite.shape[0] < 365  # a row with any NaN is dropped whole
     got = metrics.window_stats(values)
-    assert got["n"] == finite.shape[0]
-    np.testing.assert_allclose(got["rmse"], np.sqrt((finite**2).mean(axis=0)), rtol=1e-13)
-    np.testing.assert_array_equal(got["max_abs"], np.abs(finite).max(axis=0))
-    np.testing.assert_allclose(got["p95_abs"], np.percentile(np.abs(finite), 95, axis=0),
+    assert got.n == finite.shape[0]
+    np.testing.assert_allclose(got.rmse, np.sqrt((finite**2).mean(axis=0)), rtol=1e-13)
+    np.testing.assert_array_equal(got.max_abs, np.abs(finite).max(axis=0))
+    np.testing.assert_allclose(got.p95_abs, np.percentile(np.abs(finite), 95, axis=0),
                                rtol=1e-13)
-    assert np.all(got["p95_abs"] < got["max_abs"])
+    assert np.all(got.p95_abs < got.max_abs)
 
 
 @pytest.mark.parametrize("values", [np.empty((0, 3)), np.full((4, 3), np.nan)],
                          ids=["no rows", "no finite row"])
 def test_window_stats_of_nothing_are_nan(values):
     got = metrics.window_stats(values)
-    assert got["n"] == 0
+    assert got.n == 0
     for key in ("rmse", "max_abs", "p95_abs"):
-        assert got[key].shape == (3,) and np.isnan(got[key]).all()
+        assert getattr(got, key).shape == (3,) and np.isnan(getattr(got, key)).all()

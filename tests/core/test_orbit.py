@@ -8,8 +8,8 @@ import pytest
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
-from pipeline.constants import MOON_GM_M3_S2, MOON_RADIUS_M
-from pipeline.core import frames, orbit
+from pipeline.core import frames, orbit, rotations
+from pipeline.core.constants import MOON_GM_M3_S2, MOON_RADIUS_M
 
 MU = MOON_GM_M3_S2
 R = MOON_RADIUS_M
@@ -34,7 +34,7 @@ def angle_between_frames_rad(dcm_a: np.ndarray, dcm_b: np.ndarray) -> np.ndarray
 
 
 def nadir_error_rad(r: np.ndarray, v: np.ndarray, q: np.ndarray) -> np.ndarray:
-    return angle_between_frames_rad(frames.dcm_mci_from_orbit(r, v), frames.dcm_from_q(q))
+    return angle_between_frames_rad(frames.dcm_mci_from_orbit(r, v), rotations.dcm_from_q(q))
 
 
 def energy(r: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -70,7 +70,7 @@ def rp() -> float:
 @pytest.fixture(scope="module")
 def initial(rp: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     r0, v0 = orbit.apoapsis_state(RA, rp, INC, RAAN, ARGP)
-    return r0, v0, frames.q_from_dcm(frames.dcm_mci_from_orbit(r0, v0))
+    return r0, v0, rotations.q_from_dcm(frames.dcm_mci_from_orbit(r0, v0))
 
 
 @pytest.fixture(scope="module")
@@ -248,7 +248,7 @@ def test_nadir_pointing_and_quaternion_norm(descent: orbit.Descent, fine_t: np.n
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, rtol=0, atol=1e-15)
     assert np.all(q[:, 3] >= 0)
     # body +z on the Moon's centre, body +y on the negative orbit normal
-    dcm = frames.dcm_from_q(q)
+    dcm = rotations.dcm_from_q(q)
     r_hat = r / np.linalg.norm(r, axis=1, keepdims=True)
     h = np.cross(r, v)
     np.testing.assert_allclose(dcm[:, :, 2], -r_hat, rtol=0, atol=NADIR_TOL_RAD)
@@ -289,7 +289,7 @@ def test_states_rejects_times_outside_the_run(descent: orbit.Descent) -> None:
 def test_no_contact_raises() -> None:
     r0 = np.array([R + 100e3, 0.0, 0.0])
     v0 = np.array([0.0, np.sqrt(MU / np.linalg.norm(r0)), 0.0])  # circular, above the surface
-    q0 = frames.q_from_dcm(frames.dcm_mci_from_orbit(r0, v0))
+    q0 = rotations.q_from_dcm(frames.dcm_mci_from_orbit(r0, v0))
     with pytest.raises(ValueError, match="no surface contact"):
         orbit.propagate_descent(r0, v0, q0, t_max_s=2_000.0)
     with pytest.raises(ValueError, match="not above the surface"):
@@ -368,7 +368,7 @@ def test_jitter_departs_from_nadir_by_a_small_seeded_amount(
         # without thrust the attitude does not act on the orbit
         np.testing.assert_allclose(r, r_no_jitter, rtol=0, atol=KEPLER_POS_TOL_M)
         return Rotation.from_matrix(np.swapaxes(frames.dcm_mci_from_orbit(r, v), 1, 2)
-                                    @ frames.dcm_from_q(q)).as_rotvec()
+                                    @ rotations.dcm_from_q(q)).as_rotvec()
 
     small = departure(jittered[1e-6, 5])
     angle = np.linalg.norm(small, axis=1)

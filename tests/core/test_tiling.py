@@ -14,8 +14,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.constants import MOON_RADIUS_M
 from pipeline.core import tiling
+from pipeline.core.constants import MOON_RADIUS_M
 from pipeline.core.synthetic import generate_catalogue
 
 ORDERS = range(3, 9)

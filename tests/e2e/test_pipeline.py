@@ -20,7 +20,8 @@ from scipy import stats
 from typer.testing import CliRunner
 
 from pipeline.cli import app
-from pipeline.viz.recording import APP_ID, recording_id
+from pipeline.io.workspace import workspace
+from pipeline.viz.recording import APP_ID, catalogue_recording_id, recording_id
 
 # Two-sided 99.9 % bounds: the tests fail by chance about once in a thousand runs each.
 ALPHA = 1e-3
@@ -33,13 +34,35 @@ def run_dir(tmp_path_factory) -> Path:
     shutil.copytree(REPO / "runs" / "scenarios", root / "runs" / "scenarios")
     mp = pytest.MonkeyPatch()
     mp.chdir(root)
+    mp.setenv("CRATER_NAV_ROOT", str(root))
+    workspace.cache_clear()
     try:
         result = CliRunner().invoke(app, ["run", "short"], catch_exceptions=False)
         assert result.exit_code == 0, result.output
         (root / "headline.txt").write_text(result.output)
     finally:
         mp.undo()
+        workspace.cache_clear()
     return root / "runs" / "short"
+
+
+@pytest.fixture
+def in_project(run_dir, monkeypatch) -> Path:
+    """The e2e scratch project as the workspace and working directory (for a second command)."""
+    root = run_dir.parent.parent
+    monkeypatch.chdir(root)
+    monkeypatch.setenv("CRATER_NAV_ROOT", str(root))
+    workspace.cache_clear()
+    yield root
+    workspace.cache_clear()
+
+
+def stage_file(run_dir: Path, name: str) -> Path:
+    """A committed output of the run by file name (runs/<run>/<stage>/<name>), from the entries."""
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    [path] = [run_dir / stage / name for stage, entry in manifest["stages"].items()
+              if name in entry["outputs"]]
+    return path
 
 
 def chi2_mean_bounds(dof: int) -> tuple[float, float]:
@@ -49,17 +72,21 @@ def chi2_mean_bounds(dof: int) -> tuple[float, float]:
 
 def test_every_stage_ran_and_the_run_says_where_it_wrote(run_dir):
     manifest = json.loads((run_dir / "manifest.json").read_text())
-    assert list(manifest["stages"]) == ["ingest", "trajectory", "detect", "estimate", "score"]
+    assert set(manifest["stages"]) == {"ingest", "trajectory", "detect", "estimate", "score"}
     for name, entry in manifest["stages"].items():
+        assert (run_dir / name).is_symlink() and entry["stage"] == name
+        assert json.loads((run_dir / name / "stage.json").read_text()) == entry
         for output in entry["outputs"]:
-            assert (run_dir / output).is_file(), (name, output)
+            assert (run_dir / name / output).is_file(), (name, output)
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["run_id"] == "short"
     text = (run_dir.parent.parent / "headline.txt").read_text()
     assert "runs/short" in text and "just view short" in text
     assert "paper RMSE 1800-2400 s" in text and "joint RMSE 1800-2400 s" in text
 
 
 def test_every_frame_has_an_estimate_in_the_crater_rich_window(run_dir):
-    est = pl.read_parquet(run_dir / "estimates.parquet")
+    est = pl.read_parquet(stage_file(run_dir, "estimates.parquet"))
     assert est.height == 2 * 121
     assert (est["status"] == "ok").all()
     assert est["n_used"].min() >= 100  # hundreds of craters in view at 70-150 km
@@ -67,7 +94,7 @@ def test_every_frame_has_an_estimate_in_the_crater_rich_window(run_dir):
 
 def test_errors_are_consistent_with_each_methods_covariance(run_dir):
     """The mean NEES of each method's 6x6 covariance lies in its chi-square bounds."""
-    scores = pl.read_parquet(run_dir / "scores.parquet")
+    scores = pl.read_parquet(stage_file(run_dir, "scores.parquet"))
     for method in ("paper", "joint"):
         nees = scores.filter(pl.col("method") == method)["nees"].to_numpy()
         lo, hi = chi2_mean_bounds(6 * nees.size)
@@ -77,7 +104,8 @@ def test_errors_are_consistent_with_each_methods_covariance(run_dir):
 def test_joint_errors_reach_the_cramer_rao_bound(run_dir):
     """Normalised by the per-frame CRLB, the joint's squared errors are chi-square with one
     degree of freedom per frame and axis: an efficient estimator, no better, no worse."""
-    scores = pl.read_parquet(run_dir / "scores.parquet").filter(pl.col("method") == "joint")
+    scores = pl.read_parquet(stage_file(run_dir, "scores.parquet")).filter(
+        pl.col("method") == "joint")
     for q in ("x_m", "y_m", "z_m", "phi_deg", "theta_deg", "psi_deg"):
         z2 = (scores[f"err_{q}"].to_numpy() / scores[f"crlb_{q}"].to_numpy()) ** 2
         lo, hi = chi2_mean_bounds(z2.size)
@@ -85,8 +113,8 @@ def test_joint_errors_reach_the_cramer_rao_bound(run_dir):
 
 
 def test_summary_window_statistics_match_the_scores(run_dir):
-    scores = pl.read_parquet(run_dir / "scores.parquet")
-    summary = pl.read_parquet(run_dir / "summary.parquet")
+    scores = pl.read_parquet(stage_file(run_dir, "scores.parquet"))
+    summary = pl.read_parquet(stage_file(run_dir, "summary.parquet"))
     row = summary.filter((pl.col("method") == "paper") & (pl.col("window") == "1800-2400 s")
                          & (pl.col("quantity") == "y_m")).row(0, named=True)
     err = scores.filter((pl.col("method") == "paper") & (pl.col("t_s") < 2400))["err_y_m"]
@@ -113,15 +141,18 @@ def test_run_database_answers_questions_across_stages(run_dir):
 
 
 def test_report_has_the_papers_figures_and_tables(run_dir):
-    text = (run_dir / "report.md").read_text()
+    text = stage_file(run_dir, "report.md").read_text()
     for fig in ("fig4_craters.png", "fig5_position_errors.png", "fig6_attitude_errors.png"):
         assert f"({fig})" in text
-        assert (run_dir / fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        # beside report.md, so that its relative links resolve
+        assert stage_file(run_dir, fig).parent == stage_file(run_dir, "report.md").parent
+        assert stage_file(run_dir, fig).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "RMSE / sqrt(CRLB)" in text and "| joint | 1800-2400 s |" in text
 
 
 ENTITIES = {
-    "ingest.rrd": ["/world/moon/surface", "/world/moon/craters"],
+    # the catalogue's recording, beside its database (catalogue/craters.rrd)
+    "catalogue": ["/world/moon/surface", "/world/moon/craters"],
     "trajectory.rrd": ["/world/moon", "/world/path", "/world/spacecraft",
                        "/world/spacecraft/axes", "/trajectory/altitude_km"],
     "detection.rrd": ["/world/frustum", "/world/footprint", "/world/moon/visible",
@@ -137,12 +168,21 @@ ENTITIES = {
 
 @pytest.mark.parametrize("name", sorted(ENTITIES))
 def test_recordings_are_complete_and_share_the_runs_recording(run_dir, name):
-    reader = rr.chunk.RrdReader(run_dir / name)
+    if name == "catalogue":
+        facts = json.loads(stage_file(run_dir, "catalogue.json").read_text())
+        path = Path(facts["recording"])
+        assert path == Path(facts["db_path"]).with_suffix(".rrd")
+        assert path.parent == run_dir.parent.parent / "catalogue"
+    else:
+        path = stage_file(run_dir, name)
+    reader = rr.chunk.RrdReader(path)
     (entry,) = [r for r in reader.recordings() if r.kind == "recording"]
-    assert (entry.application_id, entry.recording_id) == (APP_ID, recording_id("short"))
+    # the catalogue's recording is shared by every run of it (attached as an asset)
+    expected = catalogue_recording_id("craters") if name == "catalogue" else recording_id("short")
+    assert (entry.application_id, entry.recording_id) == (APP_ID, expected)
     store = reader.stream().collect()
     columns = set()
-    for index in (None, "frame") if name != "ingest.rrd" else (None,):  # ingest is static
+    for index in (None, "frame") if name != "catalogue" else (None,):  # the catalogue: static
         columns |= set(store.reader(index=index, contents="/**").to_polars().columns)
     entities = {c.split(":")[0] for c in columns if ":" in c}
     missing = [e for e in ENTITIES[name] if e not in entities]
@@ -150,21 +190,21 @@ def test_recordings_are_complete_and_share_the_runs_recording(run_dir, name):
 
 
 def test_scores_recording_matches_the_table(run_dir):
-    store = rr.chunk.RrdReader(run_dir / "scoring.rrd").stream().collect()
+    store = rr.chunk.RrdReader(stage_file(run_dir, "scoring.rrd")).stream().collect()
     df = store.reader(index="frame", contents="/errors/position/y/joint").to_polars()
-    scores = pl.read_parquet(run_dir / "scores.parquet").filter(pl.col("method") == "joint")
+    scores = pl.read_parquet(stage_file(run_dir, "scores.parquet")).filter(
+        pl.col("method") == "joint")
     logged = np.array([v[0] for v in df["/errors/position/y/joint:Scalars:scalars"].to_list()])
     np.testing.assert_array_equal(df["frame"].to_numpy(), scores["frame"].to_numpy())
     np.testing.assert_allclose(logged, scores["err_y_m"].to_numpy(), rtol=0, atol=0)
 
 
-def test_a_second_run_skips_every_stage(run_dir, monkeypatch):
+def test_a_second_run_skips_every_stage(run_dir, in_project):
     def stamps() -> dict[str, str]:
         manifest = json.loads((run_dir / "manifest.json").read_text())
         return {k: v["finished_at"] for k, v in manifest["stages"].items()}
 
     before = stamps()
-    monkeypatch.chdir(run_dir.parent.parent)
     result = CliRunner().invoke(app, ["run", "short"], catch_exceptions=False)
     assert result.exit_code == 0
     assert "just view short" in result.output

@@ -16,17 +16,16 @@ import numpy as np
 import polars as pl
 import pytest
 import rerun as rr
-from conftest import REPO, shared_file
+from conftest import REPO, run_stages, shared_file
 from polars.testing import assert_frame_equal
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
-from pipeline import stages
 from pipeline.config import load_config
 from pipeline.core import frames
 from pipeline.io.catalogue_db import load_catalogue
 from pipeline.io.store import RunStore
-from pipeline.stages import detect
+from pipeline.ops import detect
 
 R_M = 1_737_400.0
 ALPHA = 1e-4
@@ -101,7 +100,7 @@ def run_pipeline(root: Path, run_id: str, overrides: dict) -> Run:
                  {"catalogue": {"db_path": str(root / "catalogue" / "small.duckdb")}})
     cfg = load_config(DEFAULT_TOML, run_id, over)
     store = RunStore(run_id, root / "runs")
-    stages.run_pipeline(cfg, store, stages=PIPELINE)
+    run_stages(cfg, store.root, PIPELINE)
     return Run(store, cfg)
 
 
@@ -494,7 +493,7 @@ def test_limit_lines_past_the_limb(workdir):
             "detection": {"visibility_a": 1.0, "visibility_b_per_km": 0.0}}
     cfg = load_config("default", "limb", over)
     store = RunStore(cfg.run_id)
-    stages.run_pipeline(cfg, store, stages=PIPELINE)
+    run_stages(cfg, store.root, PIPELINE)
     run = Run(store, cfg)
     f, t, d = run.frames, run.trajectory, run.detections
     corners = [f"corner{j}_{x}_deg" for j in range(1, 5) for x in ("lat", "lon")]
@@ -538,20 +537,26 @@ def test_stage_is_skipped_when_fresh_and_rerun_with_force(workdir):
             "trajectory": {"start_s": 1500.0, "end_s": 1510.0}}
     cfg = load_config("default", "cache", over)
     store = RunStore(cfg.run_id)
-    assert stages.run_pipeline(cfg, store, stages=PIPELINE) == list(PIPELINE)
-    before = store.entry("detect")
+    assert run_stages(cfg, store.root, PIPELINE) == list(PIPELINE)
+    before, token = store.entry("detect"), store.token("detect")
     assert {"detections.parquet", "frames.parquet", "detection.rrd"} <= set(before["outputs"])
     assert set(before["tables"]) == {"detections", "frames"}
+    # the entry names the upstream commits it read
+    assert set(before["inputs"]) == {"ingest", "trajectory"}
+    assert before["inputs"]["trajectory"]["token"] == store.token("trajectory")
 
-    assert stages.run_pipeline(cfg, store, stages=PIPELINE) == []
-    assert store.entry("detect") == before
+    assert run_stages(cfg, store.root, PIPELINE) == []
+    assert store.entry("detect") == before and store.token("detect") == token
 
-    assert stages.run_pipeline(cfg, store, stages=PIPELINE, force=("detect",)) == ["detect"]
+    assert run_stages(cfg, store.root, PIPELINE, force=("detect",)) == ["detect"]
     after = store.entry("detect")
     assert after["key"] == before["key"] and after["finished_at"] >= before["finished_at"]
+    # a new committed folder replaced the old one, which is gone
+    assert store.token("detect") != token
+    assert not (store.run_dir / token).exists()
 
     changed = load_config("default", "cache", merge(over, {"detection": {"p_identify": 0.5}}))
-    assert stages.run_pipeline(changed, store, stages=PIPELINE) == ["detect"]
+    assert run_stages(changed, store.root, PIPELINE) == ["detect"]
     assert store.entry("detect")["key"] != before["key"]
 
 
@@ -580,10 +585,10 @@ def test_real_robbins_crater_field(workdir):
             "trajectory": {"start_s": 0.0, "end_s": 1000.0, "frame_rate_hz": 0.004}}
     cfg = load_config("default", "robbins", over)
     store = RunStore(cfg.run_id)
-    stages.run_pipeline(cfg, store, stages=PIPELINE)
+    run_stages(cfg, store.root, PIPELINE)
     run = Run(store, cfg)
     f, t, d = run.frames, run.trajectory, run.detections
-    assert store.entry("ingest")["info"]["rows_kept"] == 6973
+    assert store.entry("ingest")["rows"]["craters"] == 6973
     assert f["t_s"].to_list() == [0.0, 250.0, 500.0, 750.0, 1000.0]
     cat = catalogue_positions(run)
     c_mcmf = xyz(cat, "", "_m")
@@ -629,7 +634,7 @@ def test_fig4_visible_counts_on_the_full_synthetic_catalogue(workdir):
     over = {"trajectory": {"start_s": 500.0, "end_s": 2900.0, "frame_rate_hz": 0.01}}
     cfg = load_config("default", "fig4", over)
     store = RunStore(cfg.run_id)
-    stages.run_pipeline(cfg, store, stages=PIPELINE)
+    run_stages(cfg, store.root, PIPELINE)
     run = Run(store, cfg)
     f = run.frames
     t_s, n = f["t_s"].to_numpy(), f["n_visible"].to_numpy()

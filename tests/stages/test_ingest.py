@@ -9,8 +9,6 @@ import hashlib
 import io
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import duckdb
@@ -19,13 +17,11 @@ import numpy as np
 import polars as pl
 import pytest
 import rerun as rr
-from conftest import REPO, shared_file
+from conftest import REPO, run_stages, shared_file
 from typer.testing import CliRunner
 
-from pipeline import stages
 from pipeline.cli import app
 from pipeline.config import load_config, to_dict
-from pipeline.errors import PipelineError
 from pipeline.io.catalogue_db import CatalogueError
 from pipeline.io.store import RunStore
 from pipeline.stages import ingest
@@ -324,15 +320,17 @@ def test_usgs_robbins_good_rows_kept_exactly(tmp_path):
 # --- failures keep the previous catalogue ---------------------------------------------------------
 
 
-def run_ingest(run_id: str, **catalogue) -> tuple[object, RunStore, bool]:
+def run_ingest(run_id: str, force: bool = False, **catalogue) -> tuple[object, RunStore, bool]:
     cfg = load_config("default", run_id, {"catalogue": catalogue})
     store = RunStore(run_id)
-    return cfg, store, stages.execute("ingest", cfg, store)
+    ran = run_stages(cfg, store.root, ["ingest"], force=["ingest"] if force else [])
+    return cfg, store, ran == ["ingest"]
 
 
 def snapshot(workdir: Path) -> tuple:
     db = workdir / "catalogue" / "craters.duckdb"
-    return meta(db), craters(db), (workdir / "runs" / "r" / "manifest.json").read_bytes()
+    store = RunStore("r")
+    return meta(db), craters(db), store.entry("ingest"), store.token("ingest")
 
 
 def missing_column_file(tmp_path: Path) -> tuple[Path, dict, list[str]]:
@@ -380,7 +378,8 @@ def test_failed_ingest_names_the_problem_and_keeps_the_catalogue(workdir, tmp_pa
     assert after[0] == before[0]
     assert after[1].equals(before[1])
     assert after[2] == before[2]
-    assert sorted(p.name for p in (workdir / "catalogue").iterdir()) == ["craters.duckdb"]
+    assert sorted(p.name for p in (workdir / "catalogue").iterdir()) == ["craters.duckdb",
+                                                                          "craters.rrd"]
 
 
 def test_max_reject_share_is_configurable(workdir, tmp_path):
@@ -406,7 +405,7 @@ def test_synthetic_ingest_stage_outputs(workdir):
     assert ran
     db = workdir / "catalogue" / "craters.duckdb"
     m = meta(db)
-    assert m["key"] == stages.stage_key("ingest", cfg)
+    assert m["key"] == ingest.catalogue_key(cfg)
     assert (m["format"], m["source_path"], m["sha256"]) == ("synthetic", "synthetic", None)
     assert m["generator_seed"] == 2018 and m["healpix_order"] == 6
     assert m["rows_read"] == m["rows_kept"] > 6_000 and m["rows_rejected"] == 0
@@ -417,9 +416,10 @@ def test_synthetic_ingest_stage_outputs(workdir):
     assert table["diam_km"].min() >= 20.0
     assert query(db, "SELECT count(*) AS n FROM rejects")["n"][0] == 0
 
-    rrd = store.path("ingest.rrd")
+    # the catalogue's recording lives beside the database, once for every run of it
+    rrd = workdir / "catalogue" / "craters.rrd"
     [entry] = rr.chunk.RrdReader(rrd).recordings()
-    assert entry.recording_id == recording.recording_id("r")
+    assert entry.recording_id == recording.catalogue_recording_id("craters")
     assert entry.application_id == recording.APP_ID
     df = rrd_entities(rrd)
     points = np.array(df["/world/moon/craters:Points3D:positions"][0].to_list())
@@ -427,27 +427,29 @@ def test_synthetic_ingest_stage_outputs(workdir):
     xyz = table.select("x_m", "y_m", "z_m").to_numpy()
     order_p, order_t = np.lexsort(points.T), np.lexsort(xyz.T)
     np.testing.assert_allclose(points[order_p], xyz[order_t], rtol=0, atol=R_M * 2.0**-24)
-    # points are drawn at half the crater radius (recording.log_ingest)
+    # points are drawn at half the crater radius
     radii = np.sort(np.array(df["/world/moon/craters:Points3D:radii"][0].to_list()))
     np.testing.assert_allclose(radii, np.sort(table["diam_km"].to_numpy()) * 250.0, rtol=1e-6)
     half_sizes = np.array(df["/world/moon/surface:Ellipsoids3D:half_sizes"][0].to_list())
     np.testing.assert_array_equal(half_sizes, [[R_M] * 3])
 
     entry = store.entry("ingest")
-    assert entry["key"] == m["key"]
-    assert entry["outputs"] == {"ingest.rrd": {"bytes": rrd.stat().st_size}}
+    facts = json.loads(store.path("catalogue.json").read_text())
+    assert (facts["db_path"], facts["key"], facts["recording"]) == (str(db), m["key"], str(rrd))
+    assert set(entry["outputs"]) == {"catalogue.json"}
     assert entry["rows"] == {"craters": table.height, "rejects": 0}
     assert entry["wall_time_s"] > 0 and entry["info"]["rebuilt"] is True
-    assert json.loads(store.path("config.json").read_text()) == json.loads(json.dumps(to_dict(cfg)))
+    assert json.loads((store.run_dir / "config.json").read_text()) == json.loads(
+        json.dumps(to_dict(cfg)))
 
 
 def test_ingest_stage_cache(workdir, tmp_path):
     db = workdir / "catalogue" / "craters.duckdb"
     cfg, store, ran = run_ingest("r", **SMALL)
     assert ran
-    manifest = store.manifest_path.read_bytes()
+    token = store.token("ingest")
     assert not run_ingest("r", **SMALL)[2]  # unchanged: skipped
-    assert store.manifest_path.read_bytes() == manifest
+    assert store.token("ingest") == token
 
     assert run_ingest("r", **SMALL, healpix_order=5)[2]  # a config value changed
     assert meta(db)["healpix_order"] == 5
@@ -462,12 +464,12 @@ def test_ingest_stage_cache(workdir, tmp_path):
     assert run_ingest("r", source=str(path))[2]
     assert meta(db)["rows_kept"] == 31
 
-    inode = store.path("ingest.rrd").stat().st_ino
-    cfg = load_config("default", "r", {"catalogue": {"source": str(path)}})
-    assert stages.execute("ingest", cfg, store, force=True)
-    assert store.path("ingest.rrd").stat().st_ino != inode  # a new recording was published
+    rrd = workdir / "catalogue" / "craters.rrd"
+    inode = rrd.stat().st_ino
+    assert run_ingest("r", force=True, source=str(path))[2]
+    assert rrd.stat().st_ino != inode  # forced: rebuilt, a new recording was published
 
-    store.path("ingest.rrd").unlink()  # a missing output makes the stage stale
+    (store.stage_dir("ingest") / "catalogue.json").write_text("{}")  # a damaged output
     assert run_ingest("r", source=str(path))[2]
     db.unlink()  # so does a missing (or replaced) catalogue database
     assert run_ingest("r", source=str(path))[2]
@@ -480,7 +482,7 @@ def test_runs_share_the_catalogue_database(workdir):
     run_ingest("a", **SMALL)
     built_at = meta(db)["ingest_time"], db.stat().st_ino
     _, store_b, ran = run_ingest("b", **SMALL)
-    assert ran  # run b has no ingest.rrd yet
+    assert ran  # run b has no catalogue.json yet
     assert store_b.entry("ingest")["info"]["rebuilt"] is False
     assert (meta(db)["ingest_time"], db.stat().st_ino) == built_at
 
@@ -491,78 +493,19 @@ def test_cli_ingest_with_source_and_db(workdir, tmp_path):
                                       "--format", "robbins2018", "--db", "catalogue/cli.duckdb"])
     assert result.exit_code == 0, result.output
     assert meta(workdir / "catalogue" / "cli.duckdb")["rows_kept"] == 12
-    assert (workdir / "runs" / "c" / "ingest.rrd").is_file()
+    assert (workdir / "catalogue" / "cli.rrd").is_file()
+    assert RunStore("c").catalogue_db() == workdir / "catalogue" / "cli.duckdb"
 
 
-# --- read-only SQL --------------------------------------------------------------------------------
-
-
-def sql(*args: str):
-    return CliRunner().invoke(app, ["sql", *args])
-
-
-def test_sql_prints_a_table(workdir):
-    run_ingest("r", **SMALL)
-    n = meta(workdir / "catalogue" / "craters.duckdb")["rows_kept"]
-    result = sql("SELECT count(*) AS n_craters, min(diam_km) >= 20 AS ok FROM craters")
+def test_cli_ingest_of_a_file_never_replaces_the_default_catalogue(workdir, tmp_path):
+    """Without --db a source file goes to catalogue/<stem>.duckdb and run <stem>: the shared
+    default catalogue and the default run are untouched."""
+    assert CliRunner().invoke(app, ["ingest", "default"]).exit_code == 0
+    default_db = workdir / "catalogue" / "craters.duckdb"
+    before = (meta(default_db), RunStore("default").token("ingest"))
+    path = write_usgs(tmp_path / "mine.csv", good_lines(12))
+    result = CliRunner().invoke(app, ["ingest", "--source", str(path)])
     assert result.exit_code == 0, result.output
-    assert "n_craters" in result.output and str(n) in result.output and "True" in result.output
-    result = sql("--max-rows", "3", "SELECT crater_id FROM craters ORDER BY crater_id")
-    assert result.exit_code == 0
-    assert "first 3 rows shown" in result.output
-    assert sum(line.startswith("│") for line in result.output.splitlines()) == 3
-
-
-def test_sql_attaches_a_run_database(workdir):
-    run_ingest("r", **SMALL)
-    tx = RunStore("r").begin("trajectory", "k", {})
-    tx.table("frames", pl.DataFrame({"frame": [1, 2], "t_s": [0.0, 1.5]}))
-    tx.commit()
-    result = sql("--run", "r", "SELECT sum(t_s) AS total FROM frames")
-    assert result.exit_code == 0, result.output
-    assert "total" in result.output and "1.5" in result.output
-
-
-@pytest.mark.parametrize("statement", [
-    "DROP TABLE craters",
-    "DELETE FROM craters",
-    "UPDATE craters SET diam_km = 0",
-    "INSERT INTO rejects VALUES (1, 'x', 'y')",
-    "CREATE TABLE extra AS SELECT 1 AS x",
-    "ALTER TABLE craters ADD COLUMN z INTEGER",
-])
-def test_sql_cannot_modify_the_catalogue(workdir, statement):
-    run_ingest("r", **SMALL)
-    db = workdir / "catalogue" / "craters.duckdb"
-    before = db.read_bytes()
-    result = sql(statement)
-    assert result.exit_code != 0
-    assert isinstance(result.exception, PipelineError)
-    assert "read-only" in str(result.exception)
-    assert db.read_bytes() == before
-
-
-def test_sql_cannot_reattach_the_catalogue_writable(workdir):
-    run_ingest("r", **SMALL)
-    db = workdir / "catalogue" / "craters.duckdb"
-    n = meta(db)["rows_kept"]
-    sql(f"USE memory; DETACH catalogue; ATTACH '{db}' AS w; DELETE FROM w.craters; SELECT 1")
-    assert query(db, "SELECT count(*) AS n FROM craters")["n"][0] == n
-
-
-def test_sql_without_a_catalogue_is_a_clear_error(workdir):
-    result = sql("SELECT 1")
-    assert isinstance(result.exception, PipelineError)
-    assert "no catalogue database" in str(result.exception)
-
-
-def test_cli_sql_module_entry_point(workdir):
-    run_ingest("r", **SMALL)
-    env_cmd = [sys.executable, "-m", "pipeline", "sql"]
-    ok = subprocess.run([*env_cmd, "SELECT format FROM catalogue_meta"], capture_output=True,
-                        text=True, cwd=workdir)
-    assert ok.returncode == 0 and "synthetic" in ok.stdout
-    bad = subprocess.run([*env_cmd, "DELETE FROM craters"], capture_output=True, text=True,
-                         cwd=workdir)
-    assert bad.returncode == 1
-    assert "error:" in bad.stderr and "read-only" in bad.stderr
+    assert meta(workdir / "catalogue" / "mine.duckdb")["rows_kept"] == 12
+    assert RunStore("mine").catalogue_db() == workdir / "catalogue" / "mine.duckdb"
+    assert (meta(default_db), RunStore("default").token("ingest")) == before

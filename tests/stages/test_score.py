@@ -18,14 +18,14 @@ import numpy as np
 import polars as pl
 import pytest
 import rerun as rr
-from conftest import small_config
+from conftest import run_stages, small_config
 from scipy.spatial.transform import Rotation
 
-from pipeline import stages
 from pipeline.config import RunConfig
 from pipeline.core import estimators
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
+from pipeline.ops.score import true_used_positions
 from pipeline.stages import score
 from pipeline.viz import recording
 
@@ -79,18 +79,19 @@ class Run:
 def run(run_id: str, db: Path, root: Path = Path("runs"), **sections) -> Run:
     cfg = config(run_id, db, **sections)
     store = RunStore(run_id, root)
-    stages.run_pipeline(cfg, store)
+    run_stages(cfg, store.root)
     return Run(cfg, store)
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory, catalogue_db) -> dict[str, Run]:
-    """Read-only runs: clean; 20 % false matches (plain estimators) with an extra scoring window;
-    a cap of 2 craters (no estimate anywhere)."""
+    """Read-only runs: clean; 20 % false matches (robust estimators: plain ones flag such frames
+    `inconsistent`) with an extra scoring window; a cap of 2 craters (no estimate anywhere)."""
     root = tmp_path_factory.mktemp("runs")
     windows = [{"name": k, "start_s": a, "end_s": b} for k, (a, b) in WINDOWS.items()]
     return {"clean": run("clean", catalogue_db, root),
             "false": run("false", catalogue_db, root, detection=FALSE_MATCHES,
+                         estimation={"robust": True},
                          scoring={"windows": [*windows, EXTRA_WINDOW]}),
             "cap2": run("cap2", catalogue_db, root, detection={"max_craters": 2})}
 
@@ -140,8 +141,8 @@ def test_scores_have_one_row_per_method_and_frame(runs):
         con.close()
     entry = r.store.entry("score")
     assert set(entry["outputs"]) >= {"scores.parquet", "summary.parquet", "scoring.rrd",
-                                     "layout.rbl", "report.md"}
-    assert set(entry["tables"]) == {"scores", "summary"}
+                                     "layout.rbl", "report.md", "by_craters_used.parquet"}
+    assert set(entry["tables"]) == {"scores", "summary", "by_craters_used"}
 
 
 @pytest.mark.parametrize("name", ["clean", "false"])
@@ -248,7 +249,7 @@ def test_false_matches_get_the_bound_of_the_craters_actually_seen(runs, catalogu
     x, y, z = (seen[c].to_numpy() for c in ("x_m", "y_m", "z_m"))
     c_true = np.stack([cos * x - sin * y, sin * x + cos * y, z], axis=1)
 
-    got = score.true_used_positions(detections, catalogue_db)
+    got = true_used_positions(detections, score.catalogue_lookup(catalogue_db))
     # float64 rotations of ~1.7e6 m vectors: a few ulp (2.3e-10 m each)
     np.testing.assert_allclose(got, c_true, rtol=0, atol=1e-8)
     np.testing.assert_array_equal(got[~false], xyz(used, "c_mci", "_m")[~false])
@@ -443,8 +444,8 @@ def test_layout_is_a_blueprint_with_the_error_and_consistency_views(runs):
                for cell in df[c].drop_nulls().to_list()}
     expected = {f"/errors/position/{a}" for a in "xyz"} | {
         f"/errors/attitude/{a}" for a in ("phi", "theta", "psi")} | {
-        "/consistency", "/world", "/world/spacecraft/camera", "/counts", "/trajectory",
-        "/estimation"}
+        "/consistency", "/world", "/world/spacecraft/camera", "/world/spacecraft/chase",
+        "/counts", "/trajectory", "/estimation"}
     assert origins == expected
 
 
@@ -453,22 +454,22 @@ def test_layout_is_a_blueprint_with_the_error_and_consistency_views(runs):
 
 def test_score_reruns_when_scoring_changes_and_is_skipped_otherwise(workdir, catalogue_db):
     def ran(**sections) -> list[str]:
-        return stages.run_pipeline(config("r", catalogue_db, **sections), RunStore("r"))
+        return run_stages(config("r", catalogue_db, **sections), RunStore("r").root)
 
-    assert ran() == list(stages.ORDER)
-    scores = Path("runs/r/scores.parquet")
+    assert ran() == ["ingest", "trajectory", "detect", "estimate", "score"]
+    scores = Path("runs/r/score/scores.parquet")
     inode = scores.stat().st_ino
     assert ran() == []
     assert scores.stat().st_ino == inode
     changed = {"final_window_s": 60.0, "table_window": "0-1500 s"}
     assert ran(scoring=changed) == ["score"]
-    summary = pl.read_parquet("runs/r/summary.parquet")
+    summary = pl.read_parquet("runs/r/score/summary.parquet")
     assert set(summary["window"]) == {*WINDOWS, "last 60 s"}
     assert ran(scoring=changed) == []
     assert ran(scoring=changed, estimation={"max_iterations": 30}) == ["estimate", "score"]
-    assert stages.run_pipeline(config("r", catalogue_db, scoring=changed,
-                                      estimation={"max_iterations": 30}), RunStore("r"),
-                               force=["score"]) == ["score"]
+    assert run_stages(config("r", catalogue_db, scoring=changed,
+                             estimation={"max_iterations": 30}), RunStore("r").root,
+                      force=["score"]) == ["score"]
 
 
 def test_headline_names_the_run_its_numbers_and_how_to_look(runs):

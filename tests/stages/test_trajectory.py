@@ -5,16 +5,18 @@ what the stage makes of the config and what it writes."""
 
 from __future__ import annotations
 
+import json
+
 import duckdb
 import numpy as np
 import polars as pl
 import pytest
 import rerun as rr
+from conftest import run_stages
 from scipy.spatial.transform import Rotation
 
-from pipeline import stages
 from pipeline.config import load_config
-from pipeline.constants import MOON_GM_M3_S2, MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
+from pipeline.core.constants import MOON_GM_M3_S2, MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
 from pipeline.errors import PipelineError
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
@@ -45,7 +47,7 @@ def run_trajectory(run_id: str, **trajectory) -> tuple[RunStore, pl.DataFrame]:
     """Run the trajectory stage alone with trajectory overrides; (store, trajectory table)."""
     cfg = load_config("default", run_id, {"trajectory": trajectory})
     store = RunStore(run_id)
-    assert stages.execute("trajectory", cfg, store)
+    assert run_stages(cfg, store.root, ["trajectory"]) == ["trajectory"]
     return store, pl.read_parquet(store.path("trajectory.parquet"))
 
 
@@ -133,6 +135,10 @@ def test_manifest_records_the_solved_periapsis_and_impact(workdir):
     # the solved ellipse falls from apoapsis to the surface in the configured 3000 s
     assert abs(kepler_time_to_radius_s(RA_M, info["periapsis_radius_m"], R_M) - 3000.0) < 1e-6
     assert info["max_nadir_error_rad"] == t["nadir_error_rad"].max()
+    # trajectory.json carries the same facts for the stages downstream (score reads t_impact_s)
+    facts = json.loads(store.path("trajectory.json").read_text())
+    assert facts == {k: v for k, v in info.items() if k != "config"}
+    assert store.path("trajectory.json").parent == store.stage_dir("trajectory")
 
 
 def test_periapsis_override_bypasses_the_solve(workdir):
@@ -220,11 +226,11 @@ def test_windows_give_the_full_run_states_at_shared_frames(workdir, rate_hz, sta
 def test_a_window_without_frames_is_empty_or_a_clear_error(workdir):
     cfg = load_config("default", "r", {"trajectory": {"start_s": 2999.5}})
     try:
-        stages.execute("trajectory", cfg, RunStore("r"))
+        run_stages(cfg, RunStore("r").root, ["trajectory"])
     except PipelineError as exc:
         assert "start_s" in str(exc)
         return
-    table = pl.read_parquet("runs/r/trajectory.parquet")
+    table = pl.read_parquet("runs/r/trajectory/trajectory.parquet")
     assert table.height == 0 and table.columns == COLUMNS
 
 
@@ -330,10 +336,10 @@ def test_trajectory_table_in_the_run_database(workdir):
 def test_stage_is_skipped_when_fresh_and_rerun_on_a_trajectory_change(workdir):
     def ran(**overrides) -> list[str]:
         cfg = load_config("default", "r", overrides)
-        return stages.run_pipeline(cfg, RunStore("r"), stages=("trajectory",))
+        return run_stages(cfg, RunStore("r").root, ["trajectory"])
 
     assert ran(trajectory={"end_s": 100.0}) == ["trajectory"]
     assert ran(trajectory={"end_s": 100.0}) == []
     assert ran(trajectory={"end_s": 100.0}, detection={"p_identify": 0.5}) == []
     assert ran(trajectory={"end_s": 100.0, "frame_rate_hz": 2.0}) == ["trajectory"]
-    assert pl.read_parquet("runs/r/trajectory.parquet").height == 201
+    assert pl.read_parquet("runs/r/trajectory/trajectory.parquet").height == 201

@@ -1,0 +1,56 @@
+"""The paper's method (Sec. 4): range Gauss-Newton for the position (Eq. 12-14), then QUEST with
+references built from that position, and the full covariance with the position error carried
+into the attitude."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from pipeline.core.estimators.base import Estimator, PoseEstimate, failed
+from pipeline.core.estimators.position import closed_form_position, gauss_newton_position
+from pipeline.core.estimators.quest import quest, quest_position_sensitivity
+from pipeline.core.measurement import line_of_sight
+from pipeline.core.status import Status
+
+
+@dataclass(frozen=True)
+class PaperEstimator(Estimator):
+    """Position: range Gauss-Newton from the prior (the previous successful estimate) or, when
+    None or not finite (a failed frame's NaN), from `closed_form_position`. Attitude: QUEST with
+    r_ref_j = unit(c_j - r_est) and equal weights 1/sigma_bearing^2. `cov`: the Gauss-Newton
+    position block; attitude block QUEST's covariance plus G P_rr G^T, with the cross terms
+    G P_rr, where G = d dtheta / d r (`quest_position_sensitivity`): the attitude error the
+    position error induces through the references (bearing and range noise are independent).
+    `att_cov_quest`: QUEST's own covariance."""
+
+    method: ClassVar[str] = "paper"
+
+    def fit(self, c_mci_m: np.ndarray, u_body: np.ndarray, rho_m: np.ndarray, use: np.ndarray,
+            r_prior_mci_m: np.ndarray | None) -> PoseEstimate:
+        o = self.options
+        if use.sum() < 3:
+            return failed(Status.TOO_FEW_CRATERS, use, 0)
+        cs, us, rs = c_mci_m[use], u_body[use], rho_m[use]
+        warm = r_prior_mci_m is not None and bool(np.all(np.isfinite(r_prior_mci_m)))
+        r0 = r_prior_mci_m if warm else closed_form_position(cs, rs, us)
+        if r0 is None:
+            return failed(Status.DEGENERATE, use, 0)
+        x, cov_x, its, status = gauss_newton_position(cs, rs, r0, o.step_tol_m, o.max_iterations,
+                                                      sigma_range_m=o.sigma_range_m)
+        if status != Status.OK:
+            return failed(status, use, its)
+        ref, _ = line_of_sight(x, cs)
+        weights = np.full(rs.size, o.sigma_bearing**-2)
+        q, att_cov = quest(us, ref, weights)
+        if not np.all(np.isfinite(att_cov)):
+            return failed(Status.DEGENERATE, use, its)
+        g = quest_position_sensitivity(q, att_cov, x, cs, weights)
+        cov = np.empty((6, 6))
+        cov[:3, :3] = cov_x
+        cov[3:, :3] = g @ cov_x
+        cov[:3, 3:] = cov[3:, :3].T
+        cov[3:, 3:] = att_cov + g @ cov_x @ g.T
+        return PoseEstimate(Status.OK.value, x, q, cov, att_cov, its, use)

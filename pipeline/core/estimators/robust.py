@@ -1,0 +1,138 @@
+"""Robust estimation against false matches: RANSAC over minimal 3-crater absolute-orientation
+poses scored by MSAC, then the method refitted until the craters passing a chi-square gate on
+their normalised residuals (`measurement`, 3 dof per crater) are stable."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+from scipy.stats import chi2
+
+from pipeline.core.estimators.base import Estimator, PoseEstimate, failed
+from pipeline.core.measurement import squared_normalised_residuals
+from pipeline.core.status import Status
+
+# RANSAC's consensus gate is the final chi-square gate widened by this factor in sigma: a 3-crater
+# pose predicts the other craters several sigma off, while a false match is kilometres off.
+RANSAC_LOOSE_FACTOR = 10.0
+RANSAC_BATCH = 8  # hypotheses scored per vectorised batch
+MAX_GATE_ITERATIONS = 10  # robust refit-and-gate passes
+
+
+@dataclass(frozen=True)
+class RobustOptions:
+    """RANSAC over minimal 3-crater poses, then refit and chi-square gate (3 dof per crater)."""
+
+    gate_probability: float  # chi-square gate on each crater's normalised residual
+    max_hypotheses: int  # cap on the RANSAC hypotheses
+    confidence: float  # probability of drawing at least one all-inlier sample
+
+
+@cache
+def _chi2_gate(probability: float) -> float:
+    """Chi-square quantile with 3 dof (1 range + 2 bearing tangent) at `probability`."""
+    return float(chi2.ppf(probability, 3))
+
+
+def _sample_triples(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
+    """(k, 3) uniformly drawn triples of distinct indices in [0, n), n >= 3."""
+    i = rng.integers(0, n, k)
+    j = rng.integers(0, n - 1, k)
+    j += j >= i
+    lo, hi = np.minimum(i, j), np.maximum(i, j)
+    m = rng.integers(0, n - 2, k)
+    m += m >= lo
+    m += m >= hi
+    return np.stack([i, j, m], axis=1)
+
+
+def absolute_orientation(p_body_m: np.ndarray, c_mci_m: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Batched least-squares c_j = R p_j + r (Kabsch): (..., m, 3) body-frame relative vectors
+    p_j = rho_j u_j and MCI points -> dcm_mci_from_body (..., 3, 3) and r_mci_m (..., 3)."""
+    p_mean = p_body_m.mean(axis=-2)
+    c_mean = c_mci_m.mean(axis=-2)
+    a = np.einsum("...ja,...jb->...ab", p_body_m - p_mean[..., None, :],
+                  c_mci_m - c_mean[..., None, :])
+    uu, _, vt = np.linalg.svd(a)
+    v = np.swapaxes(vt, -1, -2)
+    v[..., :, 2] *= np.sign(np.linalg.det(v @ np.swapaxes(uu, -1, -2)))[..., None]
+    dcm = v @ np.swapaxes(uu, -1, -2)
+    return dcm, c_mean - np.einsum("...ab,...b->...a", dcm, p_mean)
+
+
+def _hypotheses_needed(inlier_share: float, opts: RobustOptions) -> int:
+    """Hypotheses for `confidence` of one all-inlier triple at this inlier share (capped)."""
+    miss = 1.0 - inlier_share**3
+    if miss <= 0.0:
+        return 1
+    if miss >= 1.0:
+        return opts.max_hypotheses
+    return min(opts.max_hypotheses, math.ceil(math.log(1.0 - opts.confidence) / math.log(miss)))
+
+
+def _ransac(c: np.ndarray, u: np.ndarray, rho: np.ndarray, valid: np.ndarray,
+            sigma_bearing: float, sigma_range_m: float, opts: RobustOptions,
+            rng: np.random.Generator, loose_gate: float) -> tuple[np.ndarray, np.ndarray]:
+    """Consensus mask (n,) and position (3,) of the best minimal-set hypothesis (MSAC cost with
+    the loose gate); adaptive hypothesis count from the best inlier share and `confidence`."""
+    idx = np.flatnonzero(valid)
+    cv = c[idx]
+    p = u[idx] * rho[idx, None]  # body-frame relative vectors R^T (c_j - r)
+    tangent_var = (rho[idx] * sigma_bearing) ** 2
+    needed, drawn = opts.max_hypotheses, 0
+    # no hypothesis with a finite cost: an empty consensus (too_few_craters)
+    best_cost, best_s, best_x = np.inf, np.full(idx.size, np.inf), np.full(3, np.nan)
+    while drawn < min(needed, opts.max_hypotheses):
+        k = min(RANSAC_BATCH, opts.max_hypotheses - drawn)
+        sample = _sample_triples(rng, idx.size, k)
+        dcm, x = absolute_orientation(p[sample], cv[sample])
+        los = np.einsum("kab,mb->kma", dcm, u[idx])  # measured lines of sight, MCI
+        resid = cv[None] - x[:, None, :] - los * rho[idx, None]  # (k, m, 3) metres
+        along2 = np.einsum("kma,kma->km", resid, los) ** 2
+        s = along2 / sigma_range_m**2 + (np.einsum("kma,kma->km", resid, resid) - along2) \
+            / tangent_var
+        cost = np.minimum(s, loose_gate).sum(axis=1)
+        j = int(np.argmin(cost))
+        if cost[j] < best_cost:
+            best_cost, best_s, best_x = cost[j], s[j], x[j]
+            needed = _hypotheses_needed(float(np.mean(best_s < loose_gate)), opts)
+        drawn += k
+    consensus = np.zeros(valid.size, dtype=bool)
+    consensus[idx[best_s < loose_gate]] = True
+    return consensus, best_x
+
+
+def robust_fit(estimator: Estimator, c_mci_m: np.ndarray, u_body: np.ndarray, rho_m: np.ndarray,
+               valid: np.ndarray, opts: RobustOptions, rng: np.random.Generator) -> PoseEstimate:
+    """`estimator` on the rows of `valid` with false matches removed: RANSAC consensus (loose
+    gate RANSAC_LOOSE_FACTOR), then fits warm-started at the best hypothesis and refitted until
+    the set of craters passing the chi-square gate (`gate_probability`, 3 dof) under the fit is
+    stable (at most MAX_GATE_ITERATIONS fits; the estimate returned is the last fit, its
+    `inliers` the rows it used). Random draws come from `rng` only."""
+    c, u, rho = c_mci_m, u_body, rho_m
+    if valid.sum() < 3:
+        return failed(Status.TOO_FEW_CRATERS, valid, 0)
+    o = estimator.options
+    gate = _chi2_gate(opts.gate_probability)
+    use, prior = _ransac(c, u, rho, valid, o.sigma_bearing, o.sigma_range_m, opts, rng,
+                         gate * RANSAC_LOOSE_FACTOR**2)
+    est = failed(Status.TOO_FEW_CRATERS, use, 0)
+    for _ in range(MAX_GATE_ITERATIONS):
+        if use.sum() < 3:
+            return failed(Status.TOO_FEW_CRATERS, use, 0)
+        est = estimator.fit(c, u, rho, use, prior)
+        if est.status != Status.OK:
+            return est
+        s = np.full(valid.size, np.inf)
+        s[valid] = squared_normalised_residuals(
+            est.r_mci_m, est.q_mci_from_body, c[valid], u[valid], rho[valid],
+            sigma_bearing=o.sigma_bearing, sigma_range_m=o.sigma_range_m)
+        kept = s <= gate
+        if np.array_equal(kept, use):
+            return est
+        use, prior = kept, est.r_mci_m
+    return est
