@@ -83,6 +83,15 @@ def tables():
     return traj, est, scores_table(est)
 
 
+def log_trajectory(rec, traj) -> None:
+    recording.log_trajectory(
+        rec, traj["frame"].to_numpy(), traj["t_s"].to_numpy(),
+        np.stack([traj[f"r_mci_{c}_m"].to_numpy() for c in "xyz"], 1),
+        np.stack([traj[f"v_mci_{c}_m_s"].to_numpy() for c in "xyz"], 1),
+        np.stack([traj[f"q_mci_from_body_{c}"].to_numpy() for c in "xyzw"], 1),
+        traj["theta_m_rad"].to_numpy(), traj["altitude_m"].to_numpy())
+
+
 def columns(path: Path, contents: str, index: str | None = "frame") -> dict[str, list]:
     """Arrow columns of `contents` (the blueprint-free recording store) as Python lists."""
     table = rr.chunk.RrdReader(path).stream().collect().reader(
@@ -101,12 +110,7 @@ def test_trajectory_plots_altitude_and_speed_apart(tmp_path, tables):
     traj = tables[0]
     path = tmp_path / "trajectory.rrd"
     with recording.recording("r", path) as rec:
-        recording.log_trajectory(
-            rec, traj["frame"].to_numpy(), traj["t_s"].to_numpy(),
-            np.stack([traj[f"r_mci_{c}_m"].to_numpy() for c in "xyz"], 1),
-            np.stack([traj[f"v_mci_{c}_m_s"].to_numpy() for c in "xyz"], 1),
-            np.stack([traj[f"q_mci_from_body_{c}"].to_numpy() for c in "xyzw"], 1),
-            traj["theta_m_rad"].to_numpy(), traj["altitude_m"].to_numpy())
+        log_trajectory(rec, traj)
     cols = columns(path, "/trajectory/**")
     np.testing.assert_allclose(series(cols, "/trajectory/altitude_km"),
                                traj["altitude_m"].to_numpy() / 1e3)
@@ -367,12 +371,7 @@ def write_run(root: Path, tables, run: str = "r") -> tuple[Path, Path]:
         tx.commit()
         tx = store.begin("trajectory", "k", {}, "c", "h")
         with recording.recording(run, tx.output("trajectory.rrd")) as rec:
-            recording.log_trajectory(
-                rec, traj["frame"].to_numpy(), traj["t_s"].to_numpy(),
-                np.stack([traj[f"r_mci_{c}_m"].to_numpy() for c in "xyz"], 1),
-                np.stack([traj[f"v_mci_{c}_m_s"].to_numpy() for c in "xyz"], 1),
-                np.stack([traj[f"q_mci_from_body_{c}"].to_numpy() for c in "xyzw"], 1),
-                traj["theta_m_rad"].to_numpy(), traj["altitude_m"].to_numpy())
+            log_trajectory(rec, traj)
         tx.commit()
         tx = store.begin("score", "k", {}, "c", "h")
         with recording.recording(run, tx.output("scoring.rrd")) as rec:

@@ -404,11 +404,6 @@ def parse_source(path: Path, data: bytes) -> SourceTable:
     return _parse_csv(path, data)
 
 
-def read_table(path: Path) -> pl.DataFrame:
-    """A catalogue file as a DataFrame (CSV as text columns, Parquet as is)."""
-    return parse_source(Path(path), read_source(Path(path))).table
-
-
 def read_header(path: Path) -> tuple[list[str], str, str]:
     """The column names and kind of a catalogue file, from its header (CSV) or schema (Parquet),
     and its first data row as text (for messages)."""

@@ -445,7 +445,7 @@ def test_synthetic_ingest_stage_outputs(workdir):
 
 def test_ingest_stage_cache(workdir, tmp_path):
     db = workdir / "catalogue" / "craters.duckdb"
-    cfg, store, ran = run_ingest("r", **SMALL)
+    _, store, ran = run_ingest("r", **SMALL)
     assert ran
     token = store.token("ingest")
     assert not run_ingest("r", **SMALL)[2]  # unchanged: skipped
