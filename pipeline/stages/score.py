@@ -74,17 +74,26 @@ def run(ctx: StageContext) -> StageResult:
 def headline(cfg: RunConfig, store: RunStore) -> str:
     """What `just run` prints last: the run folder, headline numbers and how to look."""
     summary = pl.read_parquet(store.path("summary.parquet"))
+    scores = pl.read_parquet(store.path("scores.parquet"), columns=["method", "t_s", "status"])
     lines = [f"run {store.run_id}: {store.run_dir}/ (report: {store.path('report.md')}; "
              f"tables: just sql --run {store.run_id}; run.duckdb)"]
-    w = cfg.scoring.table_window
+    w = cfg.scoring.table
+    inside = scores.filter((pl.col("t_s") >= w.start_s) & (pl.col("t_s") < w.end_s))
     for method in cfg.estimation.methods:
-        s = summary.filter((pl.col("method") == method) & (pl.col("window") == w))
+        s = summary.filter((pl.col("method") == method) & (pl.col("window") == w.name))
         v = dict(zip(s["quantity"].to_list(), s["rmse"].to_list(), strict=True))
         r = dict(zip(s["quantity"].to_list(), s["ratio_to_crlb"].to_list(), strict=True))
+        counts = inside.filter(pl.col("method") == method)["status"].value_counts(sort=True)
+        share = f"{s['share_estimated'][0]:.0%} of frames ok" if s.height else "no frame"
+        others = ", ".join(f"{st} {n}" for st, n in counts.iter_rows() if st != "ok")
+        if not s.height or not np.isfinite(v["x_m"]):
+            lines.append(f"  {method:>5} {w.name}: no estimate ({others or 'no frame'})")
+            continue
         lines.append(
-            f"  {method:>5} RMSE {w}: X {v['x_m']:.3f} Y {v['y_m']:.3f} Z {v['z_m']:.3f} m, "
+            f"  {method:>5} RMSE {w.name}: X {v['x_m']:.3f} Y {v['y_m']:.3f} Z {v['z_m']:.3f} m, "
             f"phi {v['phi_deg']:.5f} theta {v['theta_deg']:.5f} psi {v['psi_deg']:.5f} deg "
-            f"(RMSE/sqrt(CRLB) {min(r.values()):.2f}-{max(r.values()):.2f})")
+            f"(RMSE/sqrt(CRLB) {min(r.values()):.2f}-{max(r.values()):.2f}; {share}"
+            + (f"; {others}" if others else "") + ")")
     lines.append(f"look at it: just view {store.run_id}")
     return "\n".join(lines)
 
