@@ -340,9 +340,7 @@ def test_report_figures_of_craters_used_and_counts(tmp_path, tables):
 def test_study_holds_the_papers_numbers():
     s = suslu2025.STUDY
     assert s.table1[None]["x_m"] == 0.6111 and s.table1[10]["psi_deg"] == 0.0066
-    assert report.PAPER_TABLE1 is suslu2025.TABLE1  # the deprecated alias until sweep.py moves
-    assert suslu2025.paper_rmse(50, "theta_mci_deg") == 0.0025
-    assert np.isnan(suslu2025.paper_rmse(7, "x_m"))
+    assert s.table1[50]["theta_deg"] == 0.0025 and set(s.table1) == {10, 20, 50, 100, 200, None}
     assert [(w.figure, w.start_s, w.end_s) for w in s.cap_figure_windows] == [
         ("7", 0.0, 1500.0), ("8", 1800.0, 2400.0)]
     assert [r.value for r in s.count_refs] == [150.0, 900.0]

@@ -2,47 +2,12 @@
 the published numbers a run is compared against (Table 1, the windows of Figs. 7-8 and the
 crater-count statements of Fig. 4).
 
-A new study sits beside this module with its own `STUDY = Study(...)`; the report and the
-recordings take a `Study` and read nothing paper-specific from anywhere else.
+The report and the sweep take this `STUDY` and read nothing paper-specific from anywhere else.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
-
-@dataclass(frozen=True)
-class RefLine:
-    """A published reference value on a plot: a horizontal line at `value` with a label, and the
-    time range (s since apoapsis, None: open) the statement is about."""
-
-    value: float
-    label: str
-    t_from_s: float | None = None
-    t_to_s: float | None = None
-
-
-@dataclass(frozen=True)
-class FigureWindow:
-    """A time window of a published figure (s since apoapsis, end exclusive)."""
-
-    figure: str  # the paper's figure number, e.g. "7"
-    start_s: float
-    end_s: float
-
-
-@dataclass(frozen=True)
-class Study:
-    """A published study: its name, the RMSE table per crater cap (None: no cap) and quantity
-    (vocab quantity names), the table's window, figure windows and crater-count references."""
-
-    key: str
-    citation: str
-    table1: dict[int | None, dict[str, float]]
-    table_window: tuple[float, float]
-    cap_figure_windows: tuple[FigureWindow, ...] = ()
-    count_refs: tuple[RefLine, ...] = field(default_factory=tuple)
-
+from pipeline.studies import FigureWindow, RefLine, Study
 
 # The paper's Table 1: RMSE over 1,800-2,400 s per crater cap (None: no limit), body-axis names;
 # the paper scored attitude most likely about MCI axes (see README), the sweep compares both.
@@ -80,8 +45,3 @@ STUDY = Study(
     count_refs=COUNT_REFS,
 )
 
-
-def paper_rmse(cap: int | None, quantity: str) -> float:
-    """Table 1's RMSE for a cap and a quantity name ("x_m", "phi_deg"; an "_mci" attitude name
-    maps to the same entry), NaN where the paper has none."""
-    return TABLE1.get(cap, {}).get(quantity.replace("_mci", ""), float("nan"))

@@ -19,8 +19,7 @@ import polars as pl
 from matplotlib.figure import Figure
 
 from pipeline.config import RunConfig
-from pipeline.studies import suslu2025
-from pipeline.studies.suslu2025 import Study
+from pipeline.studies import Study, suslu2025
 from pipeline.vocab import (
     ATTITUDE,
     COUNT_COLORS,
@@ -33,10 +32,6 @@ from pipeline.vocab import (
 )
 
 STUDY = suslu2025.STUDY
-
-# Deprecated alias, read by pipeline/sweep.py and tests/test_sweep.py until they switch to
-# `pipeline.studies.suslu2025.TABLE1` (or `suslu2025.paper_rmse(cap, quantity)`).
-PAPER_TABLE1 = suslu2025.TABLE1
 
 # Bins of the number of craters used in a frame (inclusive; None: no upper bound). Frames with
 # fewer than 3 have no estimate; their bin shows how many there are.
