@@ -478,3 +478,24 @@ def test_real_catalogue_still_ingests(tmp_path, name):
     assert counts == want[2:]
     if path.suffix == ".csv":
         assert query(db, "SELECT count(*) AS n FROM rejects WHERE line IS NULL")["n"][0] == 0
+
+
+def test_a_target_that_is_not_a_catalogue_is_never_overwritten(tmp_path):
+    """A mistyped --db naming another file or a folder is refused by its own name; the file
+    stays as it was and no recording or temporary is left beside it."""
+    victim = tmp_path / "notes.txt"
+    victim.write_text("precious")
+    with pytest.raises(CatalogueError) as exc:
+        build("synthetic", victim, min_diam_km=50.0)
+    assert str(victim) in str(exc.value) and "not a catalogue database" in str(exc.value)
+    assert victim.read_text() == "precious"
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    with pytest.raises(CatalogueError) as exc:
+        build("synthetic", folder, min_diam_km=50.0)
+    message = str(exc.value)
+    assert str(folder) in message and "is a folder" in message and ".tmp-" not in message
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder", "notes.txt"]
+    db = tmp_path / "c.duckdb"  # a catalogue is replaced by a new build, as it should be
+    first = build("synthetic", db, min_diam_km=50.0)["rows_kept"]
+    assert 0 < build("synthetic", db, min_diam_km=60.0)["rows_kept"] < first

@@ -369,7 +369,8 @@ def test_a_link_left_by_a_killed_commit_is_no_stage(fake, tmp_path):
 # --- freshness ------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("damage", ["truncated", "replaced", "deleted"])
+@pytest.mark.parametrize("damage", ["truncated", "replaced", "replaced, mtime restored",
+                                    "deleted"])
 def test_a_damaged_output_makes_its_stage_stale(fake, tmp_path, damage):
     root = tmp_path / "runs"
     fake.execute(root, DEFAULT_TOML, 1)
@@ -377,12 +378,15 @@ def test_a_damaged_output_makes_its_stage_stale(fake, tmp_path, damage):
     ex, cfg = Executor(fake.DAG), fake.config(DEFAULT_TOML, 1)
     path = store.path("a.txt")
     text = path.read_text()
+    st = path.stat()
     time.sleep(0.05)  # past the file system's timestamp granularity: the damage changes the mtime
     if damage == "truncated":
         path.write_text(text[: len(text) // 2])
-    elif damage == "replaced":  # same size, other bytes
+    elif damage.startswith("replaced"):  # same size, other bytes
         path.write_text(text.replace("a seed", "A SEED"))
         assert path.stat().st_size == len(text)
+        if damage.endswith("restored"):  # size and mtime as committed: only the hash can tell
+            os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
     else:
         path.unlink()
     assert not ex.is_fresh("a", cfg, store)
@@ -524,3 +528,32 @@ def test_dead_temporaries_are_swept_and_live_ones_kept(tmp_path):
     removed = sweep_dead_temporaries(tmp_path)
     assert len(removed) == 3
     assert [p.name for p in tmp_path.iterdir()] == [live.name]
+
+
+@pytest.mark.parametrize("derived", ["run.duckdb", "manifest.json"])
+def test_derived_files_are_rebuilt_when_missing_or_broken(fake, tmp_path, derived):
+    """run.duckdb and manifest.json are conveniences derived from the committed stages: the next
+    command rebuilds them even when every stage is up to date."""
+    root = tmp_path / "runs"
+    fake.execute(root, DEFAULT_TOML, 1)
+    store = RunStore("r", root)
+    manifest = json.loads(store.manifest_path.read_text())
+    if derived == "run.duckdb":
+        store.duckdb_path.unlink()
+    else:
+        store.manifest_path.write_text("{")
+    assert fake.execute(root, DEFAULT_TOML, 1) == []
+    assert json.loads(store.manifest_path.read_text())["stages"] == manifest["stages"]
+    assert store.duckdb_path.is_file()
+
+
+def test_every_command_sweeps_dead_temporaries_of_the_catalogue_folder(fake, workdir):
+    """A killed ingest leaves `catalogue/.tmp-<pid>-*`; the next command removes it even when
+    every stage is up to date (the catalogue folder is no run's, so no run's lock covers it)."""
+    root = workdir / "runs"
+    fake.execute(root, DEFAULT_TOML, 1)
+    dead_pid = 2**22 + 1  # above the default pid_max: no such process
+    leftover = workdir / "catalogue" / f".tmp-{dead_pid}-craters.duckdb"
+    leftover.write_bytes(b"half a database")
+    assert fake.execute(root, DEFAULT_TOML, 1) == []
+    assert not leftover.exists()

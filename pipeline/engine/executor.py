@@ -18,7 +18,8 @@ from pipeline.engine.progress import console, out
 from pipeline.engine.runners import InProcessRunner, Runner
 from pipeline.engine.stage import StageContext
 from pipeline.errors import StageInputError
-from pipeline.io.store import RunStore
+from pipeline.io.store import RunStore, sweep_dead_temporaries
+from pipeline.io.workspace import workspace
 
 
 @dataclass(frozen=True)
@@ -66,10 +67,12 @@ class Executor:
     def execute(self, plan: list[Invocation], store: RunStore) -> list[str]:
         """Run a plan on one run store, under its lock; returns the stages that ran."""
         ran = []
+        sweep_dead_temporaries(workspace().catalogue_dir)
         with store.lock(announce=console.print):
             for inv in plan:
                 if self._execute(inv, store):
                     ran.append(inv.stage)
+            store.ensure_views()
         return ran
 
     def _execute(self, inv: Invocation, store: RunStore) -> bool:

@@ -727,6 +727,7 @@ def build_catalogue(source: str | Path, *, db_path: Path, key: str, fmt_name: st
     given, must match them). `max_reject_share` None is the format's own; `seed`, `min_diam_km`
     and `max_diam_km` (km) drive the synthetic generator. Nothing is changed on failure.
     """
+    check_target(Path(db_path))
     t0 = time.perf_counter()
     db_path = Path(db_path)
     fmt: SourceFormat | None = None
@@ -789,6 +790,17 @@ def build_from_config(c: Any, key: str, expected_sha256: str | None = None) -> d
 
 
 # --- the database --------------------------------------------------------------------------------
+
+
+def check_target(db_path: Path) -> None:
+    """A catalogue is built only into a new file or over a catalogue database: never over a
+    folder or another file (a mistyped --db must not destroy it)."""
+    if db_path.is_dir():
+        raise CatalogueError(f"{db_path}: is a folder; --db (catalogue.db_path) names the "
+                             "database file to build")
+    if db_path.exists() and read_meta(db_path) is None:
+        raise CatalogueError(f"{db_path}: exists and is not a catalogue database; remove it or "
+                             "choose another --db (catalogue.db_path)")
 
 
 def write_database(db_path: Path, craters: pl.DataFrame, rejects: pl.DataFrame,

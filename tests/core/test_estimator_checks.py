@@ -189,3 +189,18 @@ def test_false_alarm_share_on_well_posed_frames(method):
         flagged += status == "inconsistent"
     lo, hi = binom.ppf([0.5e-4, 1.0 - 0.5e-4], n_frames, 1.0 - p)
     assert lo <= flagged <= hi, flagged
+
+
+@pytest.mark.parametrize("sigmas", [(0.0, 10.0), (1e-4, 0.0), (-1e-4, 10.0), (np.nan, 10.0),
+                                    (1e-4, np.inf)])
+def test_noise_that_is_not_positive_and_finite_is_a_clear_contract_error(sigmas):
+    """The weights are 1 / sigma^2: a zero, negative or non-finite noise is refused by name, not
+    a ZeroDivisionError from inside a solver nor a fix weighted by nonsense."""
+    c = np.array([[1737.4e3, 0.0, 0.0], [1737.4e3, 1e3, 0.0], [1737.4e3, 0.0, 1e3]])
+    r = np.array([1837.4e3, 0.0, 0.0])
+    d = c - r
+    rho = np.linalg.norm(d, axis=1)
+    for method in ("paper", "joint"):
+        with pytest.raises(ValueError, match="sigma_"):
+            est.estimate_pose(method, c, d / rho[:, None], rho, sigma_bearing=sigmas[0],
+                              sigma_range_m=sigmas[1])

@@ -59,6 +59,9 @@ def estimate_pose(method: str, c_mci_m: np.ndarray, u_body: np.ndarray, rho_m: n
         raise ValueError(f"unknown method {method!r}, known {METHODS}")
     if robust is not None and rng is None:
         raise ValueError("robust estimation needs an explicit rng")
+    for name, sigma in (("sigma_bearing", sigma_bearing), ("sigma_range_m", sigma_range_m)):
+        if not (np.isfinite(sigma) and sigma > 0):  # the weights are 1 / sigma^2
+            raise ValueError(f"{name} must be finite and > 0, got {sigma!r}")
     options = EstimatorOptions(sigma_bearing, sigma_range_m, step_tol_m, max_iterations)
     estimator = ESTIMATORS[method](options)
     c, u, rho, valid = prepare(c_mci_m, u_body, rho_m)
