@@ -7,6 +7,8 @@ import shutil
 from collections.abc import Iterable
 from pathlib import Path
 
+import duckdb
+import polars as pl
 import pytest
 import rerun as rr
 
@@ -43,6 +45,15 @@ def workdir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterable[Path]:
     workspace.cache_clear()
     yield tmp_path
     workspace.cache_clear()
+
+
+def query(db_path: Path, sql: str) -> pl.DataFrame:
+    """`sql` over a DuckDB file opened read-only."""
+    con = duckdb.connect(str(db_path), read_only=True)
+    try:
+        return con.sql(sql).pl()
+    finally:
+        con.close()
 
 
 def small_config(run_id: str, db: Path, window: dict, **sections) -> RunConfig:

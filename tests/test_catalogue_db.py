@@ -12,11 +12,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-import duckdb
 import numpy as np
 import polars as pl
 import pytest
-from conftest import REPO, shared_file
+from conftest import REPO, query, shared_file
 
 from pipeline.errors import CatalogueError
 from pipeline.io import catalogue_db as cat
@@ -30,14 +29,6 @@ R_M = 1_737_400.0
 
 def build(source: Path | str, db: Path, **options) -> dict:
     return cat.build_catalogue(source, db_path=db, key="test-key", **options)
-
-
-def query(db: Path, sql: str) -> pl.DataFrame:
-    con = duckdb.connect(str(db), read_only=True)
-    try:
-        return con.sql(sql).pl()
-    finally:
-        con.close()
 
 
 def rejects(db: Path) -> list[dict]:

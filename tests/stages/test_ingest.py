@@ -11,13 +11,12 @@ import json
 import math
 from pathlib import Path
 
-import duckdb
 import healpy as hp
 import numpy as np
 import polars as pl
 import pytest
 import rerun as rr
-from conftest import REPO, run_stages, shared_file
+from conftest import REPO, query, run_stages, shared_file
 from typer.testing import CliRunner
 
 from pipeline.cli import app
@@ -42,14 +41,6 @@ def build(source: Path | str, db_path: Path, **catalogue) -> dict:
     cfg = load_config(DEFAULT_TOML, "t", {"catalogue": {"source": str(source),
                                                         "db_path": str(db_path), **catalogue}})
     return ingest.build(cfg, "test-key")
-
-
-def query(db_path: Path, sql: str) -> pl.DataFrame:
-    con = duckdb.connect(str(db_path), read_only=True)
-    try:
-        return con.sql(sql).pl()
-    finally:
-        con.close()
 
 
 def craters(db_path: Path) -> pl.DataFrame:
