@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -134,7 +135,8 @@ def sweep(
 @app.command()
 def sql(
     query: Annotated[str | None, typer.Argument(
-        help="SQL to run (read-only); without it, list the tables and their columns.")] = None,
+        help="SQL to run (read-only); `-` reads it from standard input (e.g. a file that starts "
+             "with a -- comment); without it, list the tables and their columns.")] = None,
     run: Annotated[str | None, typer.Option(
         help="Add runs/<RUN>'s tables (by name) and use the catalogue that run used.")] = None,
     db: Annotated[str | None, typer.Option(
@@ -148,6 +150,8 @@ def sql(
     """Run read-only SQL over the crater catalogue (as `craters`) and a run's tables."""
     from pipeline.io.sqlshell import run_query
 
+    if query == "-":
+        query = sys.stdin.read()
     try:
         run_query(query, run=run, db=db, fmt=format, max_rows=max_rows, timeout_s=timeout_s)
     except PipelineError as exc:  # one line, also when `app` runs without `main` (CliRunner)
@@ -171,6 +175,8 @@ def view(
     run_dir, files, catalogue = viewer.run_recordings(run)
     if not files:
         raise PipelineError(f"{run_dir}: no .rrd recordings; run `just run` first")
+    if screenshot and Path(screenshot).suffix.lower() != ".png":
+        raise PipelineError(f"--screenshot {screenshot}: the viewer writes PNG; name a .png file")
     if screenshot:
         shot = viewer.screenshot(files, Path(screenshot), catalogue=catalogue, frame=frame)
         typer.echo(f"wrote {screenshot}: frame {shot.frame} of {shot.frames[0]}-{shot.frames[1]} "

@@ -251,3 +251,24 @@ def test_ingest_of_a_missing_file_names_it(workdir, monkeypatch, capsys):
     code, _, err = main(monkeypatch, capsys, "ingest", "--source", "no/such/craters.csv")
     assert_clear_error(code, err, "no/such/craters.csv: catalogue file not found")
     assert list((workdir / "catalogue").iterdir()) == []
+
+
+def test_sql_reads_a_query_from_standard_input(tiny, monkeypatch):
+    """`just sql -` takes the query from standard input: a query file may start with a -- comment,
+    which the command line would take for an option."""
+    monkeypatch.setenv("CRATER_NAV_ROOT", str(tiny))
+    workspace.cache_clear()
+    result = CliRunner().invoke(app, ["sql", "--run", "tiny", "--format", "csv", "-"],
+                                input="-- frames per method\nSELECT method, count(*) AS n "
+                                      "FROM scores GROUP BY method ORDER BY method\n")
+    workspace.cache_clear()
+    assert result.exit_code == 0, result.output
+    assert result.output.splitlines() == ["method,n", "joint,6", "paper,6"]
+
+
+def test_a_screenshot_that_is_not_a_png_is_refused(tiny, monkeypatch, capsys):
+    monkeypatch.setenv("CRATER_NAV_ROOT", str(tiny))
+    workspace.cache_clear()
+    code, _, err = main(monkeypatch, capsys, "view", "tiny", "--screenshot", "shot.jpg")
+    workspace.cache_clear()
+    assert_clear_error(code, err, "shot.jpg", "PNG")
