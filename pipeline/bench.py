@@ -139,8 +139,8 @@ def bench_query(scratch: Scratch) -> list[Result]:
 def bench_detect(scratch: Scratch) -> list[Result]:
     import polars as pl
 
+    from pipeline.io.catalogue_db import load_recorded_catalogue
     from pipeline.ops.detect import detect_all, model_of
-    from pipeline.stages.detect import load_recorded_catalogue
 
     scratch.cli("run", "--run-id", "bench-detect")  # catalogue and trajectory
     stage_s = scratch.cli("detect", "--run-id", "bench-detect", "--force")

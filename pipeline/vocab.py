@@ -4,23 +4,15 @@ units) and colours. Config validation, tables, the report and the recordings all
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import StrEnum
 
+from pipeline.core.estimators import METHODS  # the registered estimators (paper, joint)
 from pipeline.core.status import STATUSES, Status
 
 __all__ = ["ATTITUDE", "ATTITUDE_MCI", "COUNT_COLORS", "CRLB_COLOR", "METHODS", "METHOD_COLORS",
            "POSITION", "QUANTITIES", "STATE_DIM", "STATUSES", "STATUS_CODES", "STATUS_COLORS",
-           "Method", "Quantity", "Status", "hex_color", "method_color", "quantity"]
+           "Quantity", "Status", "hex_color", "method_color", "quantity"]
 
 
-class Method(StrEnum):
-    """Single-frame pose estimators (paper Sec. 4 and the joint maximum likelihood)."""
-
-    PAPER = "paper"  # Gauss-Newton position from ranges, then QUEST attitude from bearings
-    JOINT = "joint"  # one maximum-likelihood fit of position and attitude to ranges and bearings
-
-
-METHODS: tuple[str, ...] = tuple(m.value for m in Method)
 
 # Stable integer codes of statuses for plots (a status column is the source of truth).
 STATUS_CODES: dict[str, int] = {s: i for i, s in enumerate(STATUSES)}

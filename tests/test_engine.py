@@ -237,7 +237,7 @@ def test_an_operation_edit_rekeys_its_stages_and_their_downstream(monkeypatch):
 
 
 @pytest.mark.parametrize("module", ["pipeline.io.store", "pipeline.engine.executor",
-                                    "pipeline.config"])
+                                    "pipeline.io.workspace"])
 def test_framework_edits_rekey_nothing(monkeypatch, module):
     code0, code1, key0, key1 = hashes_with_edit(monkeypatch, module)
     assert code0 == code1 and key0 == key1
@@ -278,7 +278,7 @@ def test_a_stage_that_does_not_write_a_declared_output_commits_nothing(tmp_path)
     dag = Dag([Stage(name="x", reads=(), inputs=(), outputs=("x.txt",), code=(), run=lazy)])
     store = RunStore("r", tmp_path / "runs")
     ex = Executor(dag)
-    with pytest.raises(StageInputError, match=r"declared output 'x\.txt' but did not write it"):
+    with pytest.raises(StageInputError, match=r"did not write its declared output.*'x\.txt'"):
         ex.execute(ex.plan(load_config(DEFAULT_TOML, "r")), store)
     assert store.entry("x") is None and store.committed_stages() == []
     assert list(store.stages_dir.iterdir()) == []
@@ -446,7 +446,7 @@ def test_the_entry_the_manifest_and_the_run_database(fake, tmp_path):
     assert entry["tables"] == ["a_rows"] and entry["rows"] == {"a_rows": 3}
     assert entry["info"]["seed"] == 3 and entry["info"]["config"] == [["seed", 3]]
     for promised in entry["outputs"].values():
-        assert set(promised) == {"bytes", "mtime_ns", "sha256"}
+        assert set(promised) == {"bytes", "sha256"}
     assert store.manifest()["stages"] == {"a": entry, "b": store.entry("b")}
     assert json.loads(store.manifest_path.read_text())["stages"] == store.manifest()["stages"]
     assert json.loads((store.run_dir / "config.json").read_text())["seed"] == 3
@@ -557,3 +557,21 @@ def test_every_command_sweeps_dead_temporaries_of_the_catalogue_folder(fake, wor
     leftover.write_bytes(b"half a database")
     assert fake.execute(root, DEFAULT_TOML, 1) == []
     assert not leftover.exists()
+
+
+def _raise_in_init() -> None:
+    raise PipelineError("the catalogue was replaced")
+
+
+def _identity(x: int) -> int:
+    return x
+
+
+def test_a_failing_worker_initializer_is_reported_not_a_broken_pool():
+    """A worker whose initializer fails (the catalogue was replaced, memory) reports that error
+    through its first task, instead of breaking the pool with a lost message."""
+    from pipeline.engine.runners import ProcessPoolRunner
+
+    with pytest.raises(PipelineError, match="the catalogue was replaced"):
+        list(ProcessPoolRunner(2).map(_identity, [(1,), (2,)], initializer=_raise_in_init))
+    assert list(ProcessPoolRunner(2).map(_identity, [(1,), (2,), (3,)])) == [1, 2, 3]

@@ -15,6 +15,7 @@ import pytest
 import rerun as rr
 from scipy.stats import chi2
 
+from pipeline.io.catalogue_db import build_catalogue
 from pipeline.studies import suslu2025
 from pipeline.viz import recording, report, viewer
 from pipeline.vocab import METHODS, QUANTITIES, STATE_DIM, STATUS_CODES
@@ -361,11 +362,13 @@ def write_run(root: Path, tables, run: str = "r") -> tuple[Path, Path]:
     xyz *= R_MOON / np.linalg.norm(xyz, axis=1, keepdims=True)
     cat = recording.log_catalogue(root / "catalogue" / "craters.rrd", xyz,
                                   rng.uniform(1, 30, len(xyz)), "craters")
+    db = root / "catalogue" / "craters.duckdb"
+    build_catalogue("synthetic", db_path=db, key="catalogue-key", min_diam_km=100.0)
     store = RunStore(run, root / "runs")
     with store.lock():
         tx = store.begin("ingest", "k", {}, "c", "h")
         tx.output("catalogue.json").write_text(json.dumps(
-            {"db_path": str(root / "catalogue" / "craters.duckdb"), "recording": str(cat)}))
+            {"db_path": str(db), "key": "catalogue-key", "recording": str(cat)}))
         tx.commit()
         tx = store.begin("trajectory", "k", {}, "c", "h")
         with recording.recording(run, tx.output("trajectory.rrd")) as rec:

@@ -85,12 +85,13 @@ class Executor:
                       f"{', '.join(s.outputs)}" + (f" (rerun {folder / rrd[0]})" if rrd else ""))
             return False
         inputs, paths = {}, {}
+        rid = "" if store.run_id == cfg.name else f" --run-id {store.run_id}"
         for u in self.dag.upstream[s.name]:
             if not self.is_fresh(u, cfg, store):
                 raise StageInputError(
                     f"stage {s.name!r} of run {store.run_id!r} needs stage {u!r}, which is "
-                    f"missing or out of date for this config: run `just {u} {cfg.name}` or "
-                    f"`just run {cfg.name}`")
+                    f"missing or out of date for this config: run `just {u} {cfg.name}{rid}` or "
+                    f"`just run {cfg.name}{rid}`")
             inputs[u] = {"key": self.key(u, cfg), "token": store.token(u)}
         for name in s.inputs:
             paths[name] = store.stage_dir(self.dag.producer[name]) / name
@@ -103,6 +104,10 @@ class Executor:
             result = s.run(ctx)
             if s.verify is not None:
                 s.verify(ctx)
+            missing = [o for o in s.outputs if not (tx.folder / o).is_file()]
+            if missing:
+                raise StageInputError(f"stage {s.name!r} did not write its declared output(s) "
+                                      f"{missing}; nothing was committed")
             tx.commit({"config": s.config_parts(cfg), **result.info}, config=to_dict(cfg))
         except BaseException:
             tx.abort()

@@ -1,9 +1,10 @@
 """Code fingerprints: the sha256 of the modules a stage runs, found by following its imports.
 
 A stage's cache key includes the source of its own module and of every `pipeline` module it imports,
-directly or not, except the framework around the stages (config loading, the engine, the run
-store, errors), whose changes do not change what a stage computes. Editing the report module thus
-reruns only the stages that import it.
+directly or not, except the framework around the stages (the engine, the run store, the workspace,
+errors, the CLI), whose changes do not change what a stage computes. `config.py` is keyed: besides
+loading, it derives values stages use (the navigator's noise, the jitter horizon, the windows).
+Editing the report module thus reruns only the stages that import it.
 """
 
 from __future__ import annotations
@@ -15,8 +16,8 @@ from functools import cache
 from pathlib import Path
 
 # Modules that carry no stage behaviour: their edits must not make every run stale.
-FRAMEWORK = ("pipeline.config", "pipeline.errors", "pipeline.engine", "pipeline.io.store",
-             "pipeline.io.workspace", "pipeline.cli")
+FRAMEWORK = ("pipeline.errors", "pipeline.engine", "pipeline.io.store", "pipeline.io.workspace",
+             "pipeline.cli")
 FRAMEWORK_EXACT = ("pipeline", "pipeline.stages")  # package inits (the stages' registry)
 
 

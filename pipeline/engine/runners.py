@@ -15,7 +15,10 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Protocol
+
+from pipeline.errors import PipelineError
 
 
 class Runner(Protocol):
@@ -57,13 +60,21 @@ def _die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, daemon=True).start()
 
 
+_INIT_ERROR: list[BaseException] = []  # in a worker: why its initializer failed
+
+
 def _init(parent_pid: int, initializer: Callable[..., None] | None, initargs: tuple) -> None:
     _die_with_parent(parent_pid)
     if initializer is not None:
-        initializer(*initargs)
+        try:
+            initializer(*initargs)
+        except Exception as exc:  # reported by the first task (a raising initializer would
+            _INIT_ERROR.append(exc)  # break the pool and lose the message)
 
 
 def _call(fn: Callable[..., Any], args: tuple[Any, ...]) -> Any:
+    if _INIT_ERROR:
+        raise _INIT_ERROR[0]
     return fn(*args)
 
 
@@ -75,16 +86,18 @@ class ProcessPoolRunner:
 
     def map(self, fn, items, *, initializer=None, initargs=()):
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_init,
-                                 initargs=(os.getpid(), initializer, initargs)) as pool:
+        pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_init,
+                                   initargs=(os.getpid(), initializer, initargs))
+        done = False
+        try:
             futures = [pool.submit(_call, fn, args) for args in items]
-            try:
-                for f in futures:
-                    yield f.result()
-            except BaseException:
-                for f in futures:
-                    f.cancel()
-                raise
+            for f in futures:
+                yield f.result()
+            done = True
+        except BrokenProcessPool as exc:
+            raise PipelineError(f"a worker process died ({exc}); out of memory?") from None
+        finally:  # on an error or Ctrl-C: cancel the rest and do not wait (workers die with us)
+            pool.shutdown(wait=done, cancel_futures=True)
 
 
 def runner_for(workers: int) -> Runner:

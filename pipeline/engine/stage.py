@@ -38,7 +38,6 @@ class StageContext:
     tx: StageTransaction
     runner: Runner
     inputs: dict[str, Path]  # input artifact name -> committed path
-    advance: Callable[..., None] | None = None
 
     def input(self, name: str) -> Path:
         return self.inputs[name]

@@ -34,7 +34,7 @@ from scipy.spatial import cKDTree
 from pipeline.core import frames, tiling
 from pipeline.core.constants import MOON_RADIUS_M
 from pipeline.core.synthetic import generate_catalogue
-from pipeline.errors import CatalogueError
+from pipeline.errors import CatalogueError, StageInputError
 from pipeline.io.store import now_iso, sha256_file
 from pipeline.io.workspace import PACKAGE_DIR, Workspace, workspace
 
@@ -898,3 +898,47 @@ def load_catalogue(db_path: Path) -> Catalogue:
     r = np.stack([t["x_m"], t["y_m"], t["z_m"]], axis=1)
     index = tiling.TileIndex.build(r / MOON_RADIUS_M, t["tile"], int(meta["healpix_order"]))
     return Catalogue(np.asarray(t["crater_id"]), np.asarray(t["diam_km"]), r, index, meta)
+
+
+def recorded_facts(catalogue_json: Path) -> dict[str, Any]:
+    """What a run's ingest stage recorded (`catalogue.json`: db_path, key, recording)."""
+    try:
+        facts = json.loads(Path(catalogue_json).read_text())
+        Path(facts["db_path"]), str(facts["key"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise CatalogueError(f"{catalogue_json}: unreadable ({type(exc).__name__}); rerun "
+                             "`just ingest` for this run") from None
+    return dict(facts)
+
+
+def recorded_catalogue_db(catalogue_json: Path) -> Path:
+    """The database a run used, checked to still hold that catalogue (else a clear error: its
+    tables would join against other craters)."""
+    facts = recorded_facts(catalogue_json)
+    db = Path(facts["db_path"])
+    meta = read_meta(db)
+    if meta is None or meta.get("key") != facts["key"]:
+        raise CatalogueError(f"{db}: no longer holds the catalogue this run used (rebuilt by "
+                             "another ingest); rerun the run to bring them together")
+    return db
+
+
+def load_recorded_catalogue(catalogue_json: Path) -> Catalogue:
+    """The catalogue the run's ingest stage recorded; StageInputError if the database holds
+    another one now (a concurrent `just ingest` replaced it)."""
+    facts = recorded_facts(catalogue_json)
+    craters = load_catalogue(Path(facts["db_path"]))
+    if craters.meta.get("key") != facts["key"]:
+        raise StageInputError(f"{facts['db_path']}: holds another catalogue than the run's "
+                              "ingest stage built (replaced by another `just ingest`?); rerun "
+                              "`just ingest` for this scenario")
+    return craters
+
+
+def check_catalogue_unchanged(catalogue_json: Path) -> None:
+    """Just before a commit: the database still holds the catalogue the stage loaded."""
+    facts = recorded_facts(catalogue_json)
+    meta = read_meta(Path(facts["db_path"]))
+    if meta is None or meta.get("key") != facts["key"]:
+        raise StageInputError(f"{facts['db_path']}: the catalogue was replaced while the stage "
+                              "ran; nothing was committed, rerun the command")

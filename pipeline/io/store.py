@@ -196,9 +196,12 @@ class RunStore:
         return sorted(p for n, p in self.artifacts().items() if n.endswith(".rrd"))
 
     def catalogue_db(self) -> Path | None:
-        """The catalogue database this run's stages used (from the ingest stage's outputs)."""
+        """The catalogue database this run's stages used (recorded by its ingest stage),
+        checked to still hold that catalogue; None when the run has no ingest yet."""
+        from pipeline.io.catalogue_db import recorded_catalogue_db
+
         p = self.artifacts().get("catalogue.json")
-        return None if p is None else Path(json.loads(p.read_text())["db_path"])
+        return None if p is None else recorded_catalogue_db(p)
 
     def is_fresh(self, stage: str, key: str, upstream: dict[str, str | None] | None = None
                  ) -> bool:
@@ -268,26 +271,32 @@ class RunStore:
         return StageTransaction(self, stage, key, inputs, config_hash, code_hash, force)
 
     def _publish(self, stage: str, folder: Path) -> None:
-        """The atomic step: point `stage`'s symlink at `folder`, then drop the old folder."""
+        """The atomic step: point `stage`'s symlink at `folder`, then drop the old folder (only
+        ever one of ours, inside .stages/)."""
         old = self.token(stage)
         link_tmp = self.run_dir / f".tmp-{os.getpid()}-link-{stage}"
         link_tmp.unlink(missing_ok=True)
         os.symlink(os.path.relpath(folder, self.run_dir), link_tmp)
         os.replace(link_tmp, self.stage_dir(stage))
         _fsync_dir(self.run_dir)
-        if old is not None and (self.run_dir / old).resolve() != folder.resolve():
+        if (old is not None and Path(old).parent == Path(STAGES_DIR)
+                and (self.run_dir / old).resolve() != folder.resolve()):
             shutil.rmtree(self.run_dir / old, ignore_errors=True)
 
     def ensure_views(self) -> None:
-        """Rebuild the derived files when one is missing or unreadable (they are conveniences:
-        nothing reads them to decide freshness)."""
+        """Rebuild the derived files when one is missing, unreadable or stale (a kill between a
+        commit and its refresh): they are conveniences, nothing reads them for freshness."""
+        committed = self.manifest()["stages"]
+        if not committed:
+            return
         try:
-            json.loads(self.manifest_path.read_text())
-            ok = self.duckdb_path.is_file()
-        except (OSError, ValueError):
+            ok = (json.loads(self.manifest_path.read_text()).get("stages") == committed
+                  and self.duckdb_path.is_file() and (self.run_dir / "config.json").is_file())
+        except (OSError, ValueError, AttributeError):
             ok = False
-        if not ok and self.committed_stages():
-            self.refresh_views()
+        if not ok:
+            latest = max(committed.values(), key=lambda e: e.get("finished_at", ""))
+            self.refresh_views(latest.get("run_config"))
 
     def refresh_views(self, config: dict[str, Any] | None = None) -> None:
         """Rewrite the derived files: manifest.json, config.json and run.duckdb's views."""
@@ -365,8 +374,7 @@ class StageTransaction:
             with open(p, "rb") as f:
                 os.fsync(f.fileno())
             st = p.stat()
-            outputs[name] = {"bytes": st.st_size, "mtime_ns": st.st_mtime_ns,
-                             "sha256": sha256_file(p)}
+            outputs[name] = {"bytes": st.st_size, "sha256": sha256_file(p)}
         entry = {
             "stage": self.stage,
             "key": self.key,
@@ -379,6 +387,7 @@ class StageTransaction:
             "wall_time_s": round(time.perf_counter() - self._t0, 3),
             "finished_at": now_iso(),
             "info": info or {},
+            "run_config": config,
         }
         atomic_write_text(self.folder / ENTRY_FILE, json.dumps(entry, indent=2) + "\n")
         _fsync_dir(self.folder)

@@ -7,39 +7,14 @@ the database was not replaced meanwhile.
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import numpy as np
 import polars as pl
 
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
-from pipeline.errors import StageInputError
-from pipeline.io.catalogue_db import Catalogue, load_catalogue, read_meta
+from pipeline.io.catalogue_db import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.ops.detect import detect_all, model_of
 from pipeline.viz import recording
-
-
-def load_recorded_catalogue(catalogue_json: Path) -> Catalogue:
-    """The catalogue the run's ingest stage recorded; StageInputError if the database holds
-    another one now (a concurrent `just ingest` replaced it)."""
-    facts = json.loads(catalogue_json.read_text())
-    craters = load_catalogue(Path(facts["db_path"]))
-    if craters.meta.get("key") != facts["key"]:
-        raise StageInputError(f"{facts['db_path']}: holds another catalogue than the run's "
-                              "ingest stage built (replaced by another `just ingest`?); rerun "
-                              "`just ingest` for this scenario")
-    return craters
-
-
-def check_catalogue_unchanged(catalogue_json: Path) -> None:
-    """Just before a commit: the database still holds the catalogue the stage loaded."""
-    facts = json.loads(catalogue_json.read_text())
-    meta = read_meta(Path(facts["db_path"]))
-    if meta is None or meta.get("key") != facts["key"]:
-        raise StageInputError(f"{facts['db_path']}: the catalogue was replaced while the stage "
-                              "ran; nothing was committed, rerun the command")
 
 
 def run(ctx: StageContext) -> StageResult:

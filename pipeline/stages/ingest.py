@@ -17,7 +17,7 @@ from pipeline.config import RunConfig, config_hash
 from pipeline.engine.fingerprint import code_hash
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.io import catalogue_db as cat
-from pipeline.io.store import sweep_dead_temporaries
+from pipeline.io.store import atomic_write_text
 from pipeline.io.workspace import workspace
 from pipeline.viz import recording
 
@@ -65,8 +65,6 @@ def build(cfg: RunConfig, key: str) -> dict[str, Any]:
 def run(ctx: StageContext) -> StageResult:
     cfg, tx = ctx.cfg, ctx.tx
     path = db_path(cfg)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    sweep_dead_temporaries(path.parent)
     key = catalogue_key(cfg)
     meta = cat.read_meta(path)
     built = tx.force or meta is None or meta.get("key") != key
@@ -74,9 +72,14 @@ def run(ctx: StageContext) -> StageResult:
         meta = build(cfg, key)
     assert meta is not None
     rrd = recording.catalogue_recording_path(path)
-    if built or not rrd.is_file():
+    # the recording's own key (the catalogue's and the recording code's), kept beside it: a kill
+    # between the database and its recording, or an edited recording module, rewrites it
+    rrd_key = config_hash(key, code_hash(("pipeline.viz.recording",)))
+    key_file = rrd.with_name(rrd.name + ".key")
+    if built or not rrd.is_file() or not key_file.is_file() or key_file.read_text() != rrd_key:
         craters = cat.load_catalogue(path)
         recording.log_catalogue(rrd, craters.r_mcmf_m, craters.diam_km, catalogue_id=path.stem)
+        atomic_write_text(key_file, rrd_key)
     facts = {"db_path": str(path), "key": key, "recording": str(rrd), **meta}
     tx.output("catalogue.json").write_text(json.dumps(facts, indent=2, default=str) + "\n")
     tx.rows.update(craters=meta["rows_kept"], rejects=meta["rows_rejected"])

@@ -16,6 +16,8 @@ import polars as pl
 from pipeline.config import RunConfig
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
+from pipeline.errors import StageInputError
+from pipeline.io.catalogue_db import check_catalogue_unchanged
 from pipeline.io.store import RunStore
 from pipeline.ops.score import CraterLookup, score_run, summarize, windows
 from pipeline.viz import recording, report
@@ -33,7 +35,12 @@ def catalogue_lookup(db_path: Path) -> CraterLookup:
         finally:
             con.close()
         order = np.argsort(t["crater_id"])
-        at = order[np.searchsorted(t["crater_id"], ids, sorter=order)]
+        at = order[np.minimum(np.searchsorted(t["crater_id"], ids, sorter=order),
+                              max(order.size - 1, 0))]
+        if order.size == 0 or not np.array_equal(t["crater_id"][at], ids):
+            missing = sorted(set(ids.tolist()) - set(t["crater_id"].tolist()))[:5]
+            raise StageInputError(f"{db_path}: craters {missing} of the run's detections are not "
+                                  "in the catalogue; rerun the run")
         return np.stack([t["x_m"], t["y_m"], t["z_m"]], 1)[at]
 
     return lookup
@@ -108,4 +115,5 @@ STAGE = Stage(
              "layout.rbl", "report.md"),
     code=("pipeline.stages.score",),
     run=run,
+    verify=lambda ctx: check_catalogue_unchanged(ctx.input("catalogue.json")),
 )

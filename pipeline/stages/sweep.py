@@ -3,8 +3,8 @@
 Detection runs once per seed without a cap: identification and noise come from per-frame streams
 that do not depend on the cap, and `ops.detect.reselect` gives exactly the `used` set a run with a
 cap would have. Each (seed, cap) task then estimates with every method and scores against truth and
-the CRLB. Both fan out on the executor's runner; each worker loads the catalogue and trajectory
-once. Per-seed detections are scratch files inside the stage's own (uncommitted) folder.
+the CRLB. Both fan out on the executor's runner; each worker of a fan-out loads the catalogue and
+trajectory once. Per-seed detections are scratch files inside the stage's own (uncommitted) folder.
 """
 
 from __future__ import annotations
@@ -21,12 +21,11 @@ from pipeline.config import RunConfig
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.errors import ConfigError
-from pipeline.io.catalogue_db import Catalogue
+from pipeline.io.catalogue_db import Catalogue, check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.ops.detect import detect_all, model_of, reselect
 from pipeline.ops.estimate import UsedCraters, estimate_all
 from pipeline.ops.score import CraterLookup, score_run
 from pipeline.ops.sweep import cap_label, table1, table1_markdown
-from pipeline.stages.detect import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.stages.estimate import options
 from pipeline.studies.suslu2025 import STUDY
 from pipeline.viz import recording, report

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import ctypes.util
 import glob
-import json
 import os
 import shutil
 import signal
@@ -59,14 +58,16 @@ def vulkan_available() -> bool:
 def run_recordings(run: str, root: Path | None = None) -> tuple[Path, list[Path], Path | None]:
     """The run folder, its committed recordings and the catalogue recording to attach (the one
     beside the database the run's ingest stage used; None when there is none)."""
+    from pipeline.io.catalogue_db import recorded_catalogue_db, recorded_facts
     from pipeline.io.store import RunStore
 
     store = RunStore(run, root)
     facts_path = store.artifacts().get("catalogue.json")
     catalogue = None
     if facts_path is not None:
-        facts = json.loads(facts_path.read_text())
-        catalogue = Path(facts.get("recording") or catalogue_recording_path(facts["db_path"]))
+        db = recorded_catalogue_db(facts_path)  # still the run's catalogue, else a clear error
+        catalogue = Path(recorded_facts(facts_path).get("recording")
+                         or catalogue_recording_path(db))
         if not catalogue.is_file():
             catalogue = None
     return store.run_dir, store.recordings(), catalogue

@@ -369,8 +369,8 @@ def test_failed_ingest_names_the_problem_and_keeps_the_catalogue(workdir, tmp_pa
     assert after[0] == before[0]
     assert after[1].equals(before[1])
     assert after[2] == before[2]
-    assert sorted(p.name for p in (workdir / "catalogue").iterdir()) == ["craters.duckdb",
-                                                                          "craters.rrd"]
+    assert sorted(p.name for p in (workdir / "catalogue").iterdir()) == [
+        "craters.duckdb", "craters.rrd", "craters.rrd.key"]
 
 
 def test_max_reject_share_is_configurable(workdir, tmp_path):
@@ -459,6 +459,11 @@ def test_ingest_stage_cache(workdir, tmp_path):
     inode = rrd.stat().st_ino
     assert run_ingest("r", force=True, source=str(path))[2]
     assert rrd.stat().st_ino != inode  # forced: rebuilt, a new recording was published
+    inode, db_inode = rrd.stat().st_ino, db.stat().st_ino
+    rrd.with_name("craters.rrd.key").write_text("another build")  # killed before the recording
+    _, store2, ran = run_ingest("r2", source=str(path))  # another run of the same catalogue
+    assert ran and store2.entry("ingest")["info"]["rebuilt"] is False
+    assert db.stat().st_ino == db_inode and rrd.stat().st_ino != inode  # recording rewritten
 
     (store.stage_dir("ingest") / "catalogue.json").write_text("{}")  # a damaged output
     assert run_ingest("r", source=str(path))[2]
@@ -500,3 +505,21 @@ def test_cli_ingest_of_a_file_never_replaces_the_default_catalogue(workdir, tmp_
     assert meta(workdir / "catalogue" / "mine.duckdb")["rows_kept"] == 12
     assert RunStore("mine").catalogue_db() == workdir / "catalogue" / "mine.duckdb"
     assert (meta(default_db), RunStore("default").token("ingest")) == before
+
+
+def test_a_runs_catalogue_rebuilt_by_another_run_is_refused_not_joined(workdir):
+    """Run a's tables must never be joined against another catalogue: once run b rebuilds the
+    shared database with another config, `sql --run a` and `view a` say so in one line."""
+    run_ingest("a", **SMALL)
+    assert RunStore("a").catalogue_db() == workdir / "catalogue" / "craters.duckdb"
+    run_ingest("b", **SMALL, healpix_order=5)  # same database file, another catalogue
+    with pytest.raises(CatalogueError, match="no longer holds the catalogue this run used"):
+        RunStore("a").catalogue_db()
+    for command in (["sql", "--run", "a", "SELECT count(*) FROM craters"], ["view", "a"]):
+        result = CliRunner().invoke(app, command)
+        assert result.exit_code != 0
+        text = result.output + str(result.exception or "")
+        assert "no longer holds the catalogue this run used" in text, text
+    (RunStore("b").stage_dir("ingest") / "catalogue.json").write_text("{not json")
+    with pytest.raises(CatalogueError, match=r"catalogue\.json: unreadable"):
+        RunStore("b").catalogue_db()
