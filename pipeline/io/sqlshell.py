@@ -32,14 +32,13 @@ import duckdb
 import pyarrow as pa
 import pyarrow.dataset as pads
 
-from pipeline.errors import PipelineError
+from pipeline.config import validate_run_id
+from pipeline.errors import ConfigError, PipelineError
 from pipeline.io.workspace import Workspace, workspace
 
 DEFAULT_DB = "catalogue/craters.duckdb"
 CATALOGUE_ALIAS = "craters"
 FORMATS = ("table", "csv", "markdown")
-RUN_NAME = re.compile(r"[A-Za-z0-9._-]+")
-MAX_RUN_NAME = 100
 
 READ_ONLY_PRAGMAS = frozenset({
     "table_info", "show", "show_tables", "show_tables_expanded", "show_databases",
@@ -86,11 +85,11 @@ class Session:
 def check_run(run_id: str, runs_dir: Path) -> Path:
     """The folder of run `run_id` (a plain name with a config.json), else SqlSessionError."""
     shown = repr(run_id if len(run_id) <= 40 else run_id[:40] + "...")
-    if len(run_id) > MAX_RUN_NAME:
-        raise SqlSessionError(f"--run {shown}: longer than {MAX_RUN_NAME} characters")
-    if not RUN_NAME.fullmatch(run_id) or run_id in (".", ".."):
-        raise SqlSessionError(f"--run {shown}: not a run name (letters, digits, '.', '_' and '-'; "
-                              "not '.' or '..')")
+    try:
+        validate_run_id(run_id)
+    except ConfigError:
+        msg = "1-100 letters, digits, '.', '_' and '-', starting with a letter or digit"
+        raise SqlSessionError(f"--run {shown}: not a run name ({msg})") from None
     run_dir = runs_dir / run_id
     if not run_dir.is_dir():
         runs = sorted(q.parent.name for q in runs_dir.glob("*/config.json"))

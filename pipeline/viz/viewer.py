@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.errors import PipelineError
-from pipeline.viz.recording import catalogue_recording_path
 
 WINDOW_SIZE = (1600, 1000)
 LOAD_TIMEOUT_S = 60.0
@@ -65,9 +64,8 @@ def run_recordings(run: str, root: Path | None = None) -> tuple[Path, list[Path]
     facts_path = store.artifacts().get("catalogue.json")
     catalogue = None
     if facts_path is not None:
-        db = recorded_catalogue_db(facts_path)  # still the run's catalogue, else a clear error
-        catalogue = Path(recorded_facts(facts_path).get("recording")
-                         or catalogue_recording_path(db))
+        recorded_catalogue_db(facts_path)  # still the run's catalogue, else a clear error
+        catalogue = Path(recorded_facts(facts_path)["recording"])
         if not catalogue.is_file():
             catalogue = None
     return store.run_dir, store.recordings(), catalogue
