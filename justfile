@@ -22,6 +22,10 @@ ingest *args:
 trajectory *args:
     {{py}} trajectory "$@"
 
+# stage 2b: the IMU (100 Hz increments) and the laser altimeter, from the true descent
+imu *args:
+    {{py}} imu "$@"
+
 # stage 3: visible, identified, used craters and their measurements
 detect *args:
     {{py}} detect "$@"
@@ -29,6 +33,10 @@ detect *args:
 # stage 4: pose estimation (the paper's method and the joint ML)
 estimate *args:
     {{py}} estimate "$@"
+
+# stage 4b: the navigation filter (error-state EKF: IMU + craters + altimeter)
+navigate *args:
+    {{py}} navigate "$@"
 
 # stage 5: scores, CRLB and report.md
 score *args:
@@ -42,6 +50,10 @@ stages:
 sweep *args:
     {{py}} sweep "$@"
 
+# compare runs side by side (e.g. just compare default camera south-pole bearings-only)
+compare *args:
+    {{py}} compare "$@"
+
 # read-only SQL over the catalogue (add --run RUN for a run's tables)
 sql *args:
     {{py}} sql "$@"
@@ -50,9 +62,9 @@ sql *args:
 view run="default" *args:
     {{py}} view "$@"
 
-# the test suite (uses both cores)
+# the test suite (uses both cores: one pytest worker each, single-threaded BLAS so they do not fight)
 test *args:
-    python -m pytest -n 2 --dist loadscope "$@"
+    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 python -m pytest -n 2 --dist loadscope "$@"
 
 # benchmarks: figures printed and saved to runs/bench/
 bench *args:

@@ -75,6 +75,12 @@ def trajectory(scenario: Scenario = "default", run_id: RunId = None, force: Forc
 
 
 @app.command()
+def imu(scenario: Scenario = "default", run_id: RunId = None, force: Force = False) -> None:
+    """Simulate the IMU and the laser altimeter (imu.parquet, altimeter.parquet, imu.rrd)."""
+    _stage("imu", scenario, run_id, force)
+
+
+@app.command()
 def detect(scenario: Scenario = "default", run_id: RunId = None, force: Force = False) -> None:
     """Visible, identified and used craters per frame, with measurements (detections.parquet)."""
     _stage("detect", scenario, run_id, force)
@@ -84,6 +90,12 @@ def detect(scenario: Scenario = "default", run_id: RunId = None, force: Force = 
 def estimate(scenario: Scenario = "default", run_id: RunId = None, force: Force = False) -> None:
     """Estimate position and attitude per frame (estimates.parquet, estimation.rrd)."""
     _stage("estimate", scenario, run_id, force)
+
+
+@app.command()
+def navigate(scenario: Scenario = "default", run_id: RunId = None, force: Force = False) -> None:
+    """Run the navigation filter over the descent (navigation.parquet, navigation.rrd)."""
+    _stage("navigate", scenario, run_id, force)
 
 
 @app.command()
@@ -157,6 +169,53 @@ def sql(
     except PipelineError as exc:  # one line, also when `app` runs without `main` (CliRunner)
         typer.secho(f"error: {exc}", fg="red", err=True)
         raise typer.Exit(1) from None
+
+
+@app.command()
+def compare(
+    runs: Annotated[list[str], typer.Argument(help="Run ids (folders under runs/) to compare.")],
+    name: Annotated[str | None, typer.Option(
+        help="Output folder runs/compare-<name>/ (default: the run ids joined by '+').")] = None,
+) -> None:
+    """Compare runs side by side: crater counts and errors against time and altitude, windows,
+    and the ellipse-centre bias (runs/compare-<name>/report.md)."""
+    import json
+
+    import polars as pl
+
+    from pipeline.config import validate_run_id
+    from pipeline.core import camera
+    from pipeline.io.workspace import workspace
+    from pipeline.ops import compare as cmp
+    from pipeline.viz import report
+
+    series, windows, biases = [], [], []
+    for run in runs:
+        store = RunStore(validate_run_id(run))
+        need = ("frames.parquet", "scores.parquet", "navigation.parquet", "summary.parquet",
+                "navigation_summary.parquet", "detections.parquet")
+        try:
+            paths = {n: store.path(n) for n in need}
+        except PipelineError as exc:
+            raise PipelineError(f"compare: run {run!r}: {exc}; run `just run {run}`") from None
+        d = json.loads((store.run_dir / "config.json").read_text())["detection"]
+        k = camera.intrinsics(camera.FieldOfView.from_config(d["fov_deg"], d["fov_convention"]),
+                              d["image_size_px"])
+        series.append(cmp.frame_series(run, pl.read_parquet(paths["frames.parquet"]),
+                                       pl.read_parquet(paths["scores.parquet"]),
+                                       pl.read_parquet(paths["navigation.parquet"])))
+        windows.append(cmp.window_rows(run, pl.read_parquet(paths["summary.parquet"]),
+                                       pl.read_parquet(paths["navigation_summary.parquet"])))
+        bias = cmp.centre_bias(run, pl.read_parquet(paths["detections.parquet"]), k)
+        if bias is not None:
+            biases.append(bias)
+    folder = workspace().runs_dir / f"compare-{name or '+'.join(runs)}"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = report.write_compare_report(folder, pl.concat(series, how="diagonal"),
+                                       pl.concat(windows, how="diagonal"),
+                                       pl.concat(biases) if biases else None)
+    typer.echo(f"wrote {path} and its figures (fig_visible.png, fig_used.png, fig_errors.png"
+               f"{', fig_centre_bias.png' if biases else ''})")
 
 
 @app.command()

@@ -32,14 +32,19 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.core import orbit, synthetic
+from pipeline.core import camera, orbit, synthetic
 from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.navigation import imu
 from pipeline.errors import ConfigError
 from pipeline.io.workspace import workspace
 from pipeline.vocab import METHODS
 
 FOV_CONVENTIONS = ("corner_half_angle", "full_angle")
 SELECTIONS = ("random", "largest", "nearest", "spread")
+SENSORS = ("paper", "physical")
+BEARING_SOURCES = ("ellipse_centre", "corrected")
+RANGE_SOURCES = ("per_crater", "apparent_size", "none")
+CATALOGUE_SIGMAS = ("ignore", "truth")
 
 DIAM_UNITS = ("km", "m")
 
@@ -202,6 +207,7 @@ class TrajectoryConfig:
     jitter_seed: int  # the jitter is part of the truth: its own seed, shared by a sweep's runs
     rtol: float
     atol_m: float
+    epoch_utc: str | None  # the UTC epoch of t = 0 (ISO 8601): the Sun's position; None: no Sun
 
     def __post_init__(self) -> None:
         k = "trajectory."
@@ -271,6 +277,10 @@ class TrajectoryConfig:
         _num(self.jitter_seed, k + "jitter_seed", 0, MAX_SEED)
         _num(self.rtol, k + "rtol", 1e-13, 1e-3, why="DOP853 cannot go below ~100 eps")
         _num(self.atol_m, k + "atol_m", 1e-9, 1e3, unit="m")
+        if self.epoch_utc is not None:
+            _check(bool(re.fullmatch(r"\d{4}-\d\d-\d\d([T ][0-9:.]+)?(Z|[+-]\d\d:?\d\d)?",
+                                     self.epoch_utc.strip())), k + "epoch_utc",
+                   f"= {self.epoch_utc!r}: an ISO 8601 UTC time, e.g. \"2026-01-30T08:40:00Z\"")
 
     @property
     def has_thrust(self) -> bool:
@@ -330,6 +340,16 @@ class DetectionConfig:
     false_match_share: float  # share of identified craters matched to a wrong catalogue crater
     sigma_bearing: float  # per-component noise on the unit bearing (~rad)
     sigma_range_m: float
+    sensor: str  # paper (Eq. 9-11) | physical (pixel camera, rim ellipses, the Sun)
+    pixel_sigma_px: float  # physical: ellipse centre and semi-axes noise, 1-sigma
+    distortion: tuple[float, ...]  # physical: k1, k2, p1, p2, k3 (OpenCV's model)
+    bearing: str  # physical: ellipse_centre | corrected (the conic's true-centre direction)
+    range_source: str  # per_crater (sigma_range_m) | apparent_size | none
+    detect_min_diameter_px: float  # physical detectability: nothing smaller is detected
+    catalogue_sigma_horizontal_m: float  # the world minus the catalogue, 1-sigma per axis
+    catalogue_sigma_height_m: float
+    catalogue_sigma_diameter_share: float
+    world_seed: int  # the catalogue errors' seed (the world is fixed: shared by every run)
 
     def __post_init__(self) -> None:
         k = "detection."
@@ -356,6 +376,32 @@ class DetectionConfig:
         # case they (or the Cramér-Rao bound) can handle.
         _num(self.sigma_bearing, k + "sigma_bearing", *SIGMA_BEARING_RANGE, unit="rad")
         _num(self.sigma_range_m, k + "sigma_range_m", *SIGMA_RANGE_M_RANGE, unit="m")
+        _check(self.sensor in SENSORS, k + "sensor", f"= {self.sensor!r}: must be one of {SENSORS}")
+        _num(self.pixel_sigma_px, k + "pixel_sigma_px", 1e-4, 100.0, unit="px")
+        _check(len(self.distortion) == 5, k + "distortion", "needs 5 coefficients k1, k2, p1, "
+                                                            "p2, k3")
+        for i, c in enumerate(self.distortion):
+            _num(c, f"{k}distortion[{i}]", -10.0, 10.0)
+        _check(self.bearing in BEARING_SOURCES, k + "bearing",
+               f"= {self.bearing!r}: must be one of {BEARING_SOURCES}")
+        _check(self.range_source in RANGE_SOURCES, k + "range_source",
+               f"= {self.range_source!r}: must be one of {RANGE_SOURCES}")
+        if self.sensor == "paper":
+            _check(self.range_source == "per_crater", k + "range_source",
+                   f"= {self.range_source!r} needs sensor = \"physical\" (the paper's sensor "
+                   "ranges every crater)")
+        _num(self.detect_min_diameter_px, k + "detect_min_diameter_px", 1.0, 1000.0, unit="px")
+        _num(self.catalogue_sigma_horizontal_m, k + "catalogue_sigma_horizontal_m", 0.0, 1e5,
+             unit="m")
+        _num(self.catalogue_sigma_height_m, k + "catalogue_sigma_height_m", 0.0, 1e5, unit="m")
+        _num(self.catalogue_sigma_diameter_share, k + "catalogue_sigma_diameter_share", 0.0, 0.5)
+        _num(self.world_seed, k + "world_seed", 0, MAX_SEED)
+
+    def pixel_camera(self) -> camera.PixelCamera:
+        """The physical sensor's camera: the field of view, the image size, the distortion."""
+        fov = camera.FieldOfView.from_config(self.fov_deg, self.fov_convention)
+        k1, k2, p1, p2, k3 = self.distortion
+        return camera.PixelCamera.from_fov(fov, self.image_size_px, distortion=(k1, k2, p1, p2, k3))
 
 
 _TRUTH = {"literal": "truth"}  # field metadata: the TOML string "truth" stands for None
@@ -377,6 +423,9 @@ class EstimationConfig:
     assumed_sigma_range_m: float | None = field(metadata=_TRUTH)
     consistency_probability: float  # chi-square probability beyond which a fix is `inconsistent`
     max_condition: float  # largest accepted (Jacobi-scaled) condition number of the geometry
+    # physical sensor: the ellipse noise the navigator assumes; None ("truth"): the detection's
+    assumed_pixel_sigma_px: float | None = field(metadata=_TRUTH)
+    catalogue_sigmas: str  # ignore | truth: inflate each crater's noise by the catalogue errors
 
     def __post_init__(self) -> None:
         k = "estimation."
@@ -400,6 +449,182 @@ class EstimationConfig:
              hi_open=True)
         _num(self.max_condition, k + "max_condition", 1.0, MAX_CONDITION_LIMIT, lo_open=True,
              why="above ~1/eps double precision cannot tell a degenerate geometry")
+        if self.assumed_pixel_sigma_px is not None:
+            _num(self.assumed_pixel_sigma_px, k + "assumed_pixel_sigma_px", 1e-4, 100.0,
+                 unit="px", why='or "truth"')
+        _check(self.catalogue_sigmas in CATALOGUE_SIGMAS, k + "catalogue_sigmas",
+               f"= {self.catalogue_sigmas!r}: must be one of {CATALOGUE_SIGMAS}")
+
+
+_GRADE = {"literal": "grade"}  # field metadata: the TOML string "grade" stands for None
+IMU_GRADES = ("navigation", "tactical", "mems")
+CRATER_UPDATES = ("tight", "loose", "none")
+NAV_INITS = ("dispersed", "first_fix")
+GRAVITY_MODELS = ("point_mass", "j2")
+ALTIMETER_FAULTS = ("none", "bias", "dropout")
+MAX_IMU_SAMPLES = 5_000_000  # ~0.5 GB of increments and attitudes in memory (1 kHz over 5,000 s)
+
+
+@dataclass(frozen=True)
+class GyroConfig:
+    """Gyro error overrides in datasheet units; "grade": the preset's value."""
+
+    bias_deg_h: float | None = field(metadata=_GRADE)  # turn-on bias, 1-sigma per axis
+    bias_instability_deg_h: float | None = field(metadata=_GRADE)  # Gauss-Markov 1-sigma
+    bias_correlation_s: float | None = field(metadata=_GRADE)
+    arw_deg_sqrt_h: float | None = field(metadata=_GRADE)  # angle random walk
+    scale_factor_ppm: float | None = field(metadata=_GRADE)
+    misalignment_mrad: float | None = field(metadata=_GRADE)
+
+
+@dataclass(frozen=True)
+class AccelConfig:
+    """Accelerometer error overrides in datasheet units; "grade": the preset's value."""
+
+    bias_mg: float | None = field(metadata=_GRADE)  # turn-on bias, 1-sigma per axis (milli-g)
+    bias_instability_mg: float | None = field(metadata=_GRADE)  # Gauss-Markov 1-sigma
+    bias_correlation_s: float | None = field(metadata=_GRADE)
+    vrw_m_s_sqrt_h: float | None = field(metadata=_GRADE)  # velocity random walk
+    scale_factor_ppm: float | None = field(metadata=_GRADE)
+    misalignment_mrad: float | None = field(metadata=_GRADE)
+
+
+def _check_overrides(section: GyroConfig | AccelConfig, key: str) -> None:
+    """Each IMU error override is finite and >= 0 (a correlation time > 0), or "grade"."""
+    for f in dataclasses.fields(section):
+        value = getattr(section, f.name)
+        if value is not None:
+            _num(value, f"{key}.{f.name}", 0.0, 1e9, lo_open=f.name == "bias_correlation_s",
+                 why='or "grade"')
+
+
+def _triad(preset: imu.TriadErrors, over: GyroConfig | AccelConfig) -> imu.TriadErrors:
+    """A preset's triad errors with the config's overrides (converted to SI)."""
+    if isinstance(over, GyroConfig):
+        bias, instab, walk = over.bias_deg_h, over.bias_instability_deg_h, over.arw_deg_sqrt_h
+        bias_unit, walk_unit = imu.DEG_PER_H, imu.DEG_PER_SQRT_H
+    else:
+        bias, instab, walk = over.bias_mg, over.bias_instability_mg, over.vrw_m_s_sqrt_h
+        bias_unit, walk_unit = imu.MILLI_G, imu.M_S_PER_SQRT_H
+
+    def pick(value: float | None, default: float, unit: float) -> float:
+        return default if value is None else value * unit
+
+    return imu.TriadErrors(
+        bias_sigma=pick(bias, preset.bias_sigma, bias_unit),
+        bias_instability_sigma=pick(instab, preset.bias_instability_sigma, bias_unit),
+        bias_correlation_s=pick(over.bias_correlation_s, preset.bias_correlation_s, 1.0),
+        random_walk=pick(walk, preset.random_walk, walk_unit),
+        scale_factor_sigma=pick(over.scale_factor_ppm, preset.scale_factor_sigma, imu.PPM),
+        misalignment_sigma_rad=pick(over.misalignment_mrad, preset.misalignment_sigma_rad, 1e-3))
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    """The simulated IMU (stage `imu`): rate, grade and per-field overrides. Its draws come from
+    the run's seed."""
+
+    rate_hz: float  # sample rate of the increments
+    grade: str  # navigation | tactical | mems (pipeline.core.navigation.imu.GRADES)
+    record_rate_hz: float  # the decimated rate of the truth and navigation records
+    gyro: GyroConfig
+    accel: AccelConfig
+
+    def __post_init__(self) -> None:
+        _num(self.rate_hz, "imu.rate_hz", 1.0, 10_000.0, unit="Hz")
+        _check(self.grade in IMU_GRADES, "imu.grade", f"= {self.grade!r}: must be one of "
+                                                      f"{IMU_GRADES}")
+        _num(self.record_rate_hz, "imu.record_rate_hz", 0.0, self.rate_hz, lo_open=True, unit="Hz",
+             why="at most the IMU rate")
+        _check_overrides(self.gyro, "imu.gyro")
+        _check_overrides(self.accel, "imu.accel")
+
+    def model(self) -> imu.ImuGrade:
+        """The simulated IMU's error model: the grade's preset with the overrides."""
+        preset = imu.GRADES[self.grade]
+        return imu.ImuGrade(_triad(preset.gyro, self.gyro), _triad(preset.accel, self.accel),
+                            preset.source)
+
+
+@dataclass(frozen=True)
+class AltimeterConfig:
+    """The laser altimeter (truth, stage `imu`): slant range along the boresight to the sphere."""
+
+    enabled: bool
+    rate_hz: float
+    sigma_m: float  # noise 1-sigma = sigma_m + sigma_share * range
+    sigma_share: float
+    max_range_km: float  # no return beyond this slant range
+    fault: str  # none | bias (a bias step) | dropout (no samples) over the fault interval
+    fault_start_s: float
+    fault_end_s: float
+    fault_bias_m: float
+
+    def __post_init__(self) -> None:
+        k = "altimeter."
+        _num(self.rate_hz, k + "rate_hz", 0.0, 1000.0, lo_open=True, unit="Hz")
+        _num(self.sigma_m, k + "sigma_m", 1e-3, 1e5, unit="m")
+        _num(self.sigma_share, k + "sigma_share", 0.0, 1.0)
+        _num(self.max_range_km, k + "max_range_km", 0.0, 1e4, lo_open=True, unit="km")
+        _check(self.fault in ALTIMETER_FAULTS, k + "fault", f"= {self.fault!r}: must be one of "
+                                                            f"{ALTIMETER_FAULTS}")
+        _num(self.fault_start_s, k + "fault_start_s", 0.0, PROPAGATION_LIMIT_S, unit="s")
+        _num(self.fault_end_s, k + "fault_end_s", 0.0, PROPAGATION_LIMIT_S, unit="s")
+        _check(self.fault_end_s >= self.fault_start_s, k + "fault_end_s",
+               f"= {self.fault_end_s:g} s is before fault_start_s ({self.fault_start_s:g} s)")
+        _num(self.fault_bias_m, k + "fault_bias_m", -1e6, 1e6, unit="m")
+
+
+@dataclass(frozen=True)
+class NavigationConfig:
+    """The navigation filter (stage `navigate`): the navigator's side."""
+
+    crater_updates: str  # tight (each crater) | loose (a method's pose) | none
+    loose_method: str  # the estimator whose poses a loose update uses
+    altimeter_updates: bool
+    gate_probability: float | None  # chi-square gate per measurement; "none": no gate
+    gravity: str  # the navigator's gravity model: point_mass (the truth's) | j2
+    init: str  # dispersed (from the truth plus a seeded draw) | first_fix
+    init_sigma_position_m: float
+    init_sigma_velocity_m_s: float
+    init_sigma_attitude_deg: float
+    assumed_imu_grade: str | None = field(metadata=_TRUTH)  # "truth": the simulated IMU's model
+    assumed_altimeter_sigma_m: float | None = field(metadata=_TRUTH)
+    outage_start_s: float | None  # no crater updates in [outage_start_s, outage_end_s)
+    outage_end_s: float | None
+    smoother: bool  # also the Rauch-Tung-Striebel smoothed path (post-flight)
+    max_step_s: float  # longest covariance propagation step
+
+    def __post_init__(self) -> None:
+        k = "navigation."
+        _check(self.crater_updates in CRATER_UPDATES, k + "crater_updates",
+               f"= {self.crater_updates!r}: must be one of {CRATER_UPDATES}")
+        _check(self.loose_method in METHODS, k + "loose_method",
+               f"= {self.loose_method!r}: must be one of {METHODS}")
+        if self.gate_probability is not None:
+            _num(self.gate_probability, k + "gate_probability", 0.0, 1.0, lo_open=True,
+                 hi_open=True, why='or "none"')
+        _check(self.gravity in GRAVITY_MODELS, k + "gravity",
+               f"= {self.gravity!r}: must be one of {GRAVITY_MODELS}")
+        _check(self.init in NAV_INITS, k + "init", f"= {self.init!r}: must be one of {NAV_INITS}")
+        _num(self.init_sigma_position_m, k + "init_sigma_position_m", 1e-3, 1e6, unit="m")
+        _num(self.init_sigma_velocity_m_s, k + "init_sigma_velocity_m_s", 1e-6, 1e4, unit="m/s")
+        _num(self.init_sigma_attitude_deg, k + "init_sigma_attitude_deg", 1e-6, 30.0, unit="deg")
+        if self.assumed_imu_grade is not None:
+            _check(self.assumed_imu_grade in IMU_GRADES, k + "assumed_imu_grade",
+                   f"= {self.assumed_imu_grade!r}: must be one of {IMU_GRADES} or \"truth\"")
+        if self.assumed_altimeter_sigma_m is not None:
+            _num(self.assumed_altimeter_sigma_m, k + "assumed_altimeter_sigma_m", 1e-3, 1e5,
+                 unit="m", why='or "truth"')
+        _check((self.outage_start_s is None) == (self.outage_end_s is None), k + "outage_end_s",
+               "give both outage_start_s and outage_end_s, or neither")
+        if self.outage_start_s is not None and self.outage_end_s is not None:
+            _num(self.outage_start_s, k + "outage_start_s", 0.0, PROPAGATION_LIMIT_S, unit="s")
+            _num(self.outage_end_s, k + "outage_end_s", 0.0, PROPAGATION_LIMIT_S, unit="s")
+            _check(self.outage_end_s > self.outage_start_s, k + "outage_end_s",
+                   f"= {self.outage_end_s:g} s must be > outage_start_s "
+                   f"({self.outage_start_s:g} s)")
+        _num(self.max_step_s, k + "max_step_s", 1e-3, 10.0, unit="s")
 
 
 @dataclass(frozen=True)
@@ -483,12 +708,17 @@ class RunConfig:
     trajectory: TrajectoryConfig
     detection: DetectionConfig
     estimation: EstimationConfig
+    imu: ImuConfig
+    altimeter: AltimeterConfig
+    navigation: NavigationConfig
     scoring: ScoringConfig
     sweep: SweepConfig
 
     def __post_init__(self) -> None:
         _num(self.seed, "seed", 0, MAX_SEED)
         validate_run_id(self.run_id)
+        _check(self.detection.sensor == "paper" or self.trajectory.epoch_utc is not None,
+               "trajectory.epoch_utc", "the physical sensor needs an epoch (the Sun's position)")
         # Cross-section: what the scoring needs of the trajectory (known without thrust).
         impact = self.trajectory.ballistic_impact_s()
         if impact is not None:
@@ -499,6 +729,22 @@ class RunConfig:
             _check(self.scoring.final_window_s <= impact, "scoring.final_window_s",
                    f"= {self.scoring.final_window_s:g} s is longer than the descent "
                    f"({impact:.3f} s)")
+            n = impact * self.imu.rate_hz
+            _check(n <= MAX_IMU_SAMPLES, "imu.rate_hz",
+                   f"= {self.imu.rate_hz:g} Hz over the {impact:.0f} s descent makes {n:.3g} "
+                   f"samples, above the limit of {MAX_IMU_SAMPLES:,}")
+
+    def navigator_imu(self) -> imu.ImuGrade:
+        """The IMU error model the filter assumes: navigation.assumed_imu_grade's preset, or the
+        simulated IMU's own ("truth")."""
+        assumed = self.navigation.assumed_imu_grade
+        return self.imu.model() if assumed is None else imu.GRADES[assumed]
+
+    def navigator_altimeter_sigma(self, rho_m: float) -> float:
+        """The altimeter noise 1-sigma (m) the filter assumes at a slant range (m)."""
+        assumed = self.navigation.assumed_altimeter_sigma_m
+        a = self.altimeter
+        return a.sigma_m + a.sigma_share * rho_m if assumed is None else assumed
 
     def navigator_sigmas(self) -> tuple[float, float]:
         """(sigma_bearing ~rad, sigma_range_m m) the estimators assume: estimation.assumed_sigma_*,
@@ -672,7 +918,8 @@ def load_config(scenario: str = "default", run_id: str | None = None,
 
 def to_dict(cfg: Any) -> Any:
     """Plain JSON-able dict of a config dataclass (None stays None, except where a field has its
-    own literal: "truth" for the navigator's assumed sigmas, so config.json shows the intent)."""
+    own literal: "truth" for the navigator's assumptions, "grade" for IMU fields left to the
+    preset, so config.json shows the intent)."""
     if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type):
         out = {}
         for f in dataclasses.fields(cfg):

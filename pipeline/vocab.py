@@ -18,13 +18,17 @@ __all__ = ["ATTITUDE", "ATTITUDE_MCI", "COUNT_COLORS", "CRLB_COLOR", "METHODS", 
 STATUS_CODES: dict[str, int] = {s: i for i, s in enumerate(STATUSES)}
 
 # RGB colours per method: recordings (0-255) and report figures (hex) use the same hue.
-METHOD_COLORS: dict[str, tuple[int, int, int]] = {"paper": (0, 170, 255), "joint": (40, 200, 110)}
+# The navigation filter, its RTS smoother and the IMU-only path share the table.
+METHOD_COLORS: dict[str, tuple[int, int, int]] = {
+    "paper": (0, 170, 255), "joint": (40, 200, 110), "filter": (250, 220, 40),
+    "smoother": (250, 160, 200), "imu_only": (150, 150, 150)}
 
 # Colours of statuses (plots of the status codes), of the crater counts and of the CRLB band.
 STATUS_COLORS: dict[str, tuple[int, int, int]] = {
     "ok": (60, 200, 90), "too_few_craters": (240, 170, 0), "not_converged": (240, 90, 40),
     "degenerate": (220, 40, 40), "ill_conditioned": (200, 60, 200),
-    "inconsistent": (150, 90, 230), "below_surface": (120, 120, 120)}
+    "inconsistent": (150, 90, 230), "below_surface": (120, 120, 120),
+    "not_initialised": (90, 90, 160), "needs_ranges": (0, 150, 150), "ambiguous": (180, 140, 60)}
 COUNT_COLORS: dict[str, tuple[int, int, int]] = {
     "candidates": (120, 110, 220), "visible": (175, 175, 175), "identified": (255, 200, 60),
     "used": (255, 130, 0), "false_match": (230, 0, 230)}

@@ -23,10 +23,10 @@ from pipeline.errors import PipelineError
 from pipeline.io.store import RunStore
 from pipeline.io.workspace import workspace
 
-COMMANDS = {"run", "ingest", "trajectory", "detect", "estimate", "score", "sweep", "sql", "view",
-            "stages", "bench"}
-RECORDINGS = ["detect/detection.rrd", "estimate/estimation.rrd", "score/scoring.rrd",
-              "trajectory/trajectory.rrd"]
+COMMANDS = {"run", "ingest", "trajectory", "imu", "detect", "estimate", "navigate", "score",
+            "sweep", "compare", "sql", "view", "stages", "bench"}
+RECORDINGS = ["detect/detection.rrd", "estimate/estimation.rrd", "imu/imu.rrd",
+              "navigate/navigation.rrd", "score/scoring.rrd", "trajectory/trajectory.rrd"]
 # Six frames (1,900-1,950 s) over a 10 km synthetic catalogue: ~20 craters used per frame.
 TINY = """extends = "default"
 
@@ -204,7 +204,8 @@ def test_unknown_config_key_names_the_file_and_the_key(workdir, monkeypatch, cap
 def test_run_force_of_an_unknown_stage_lists_the_stages(workdir, monkeypatch, capsys):
     code, _, err = main(monkeypatch, capsys, "run", "short", "--force", "bogus")
     assert_clear_error(code, err, "--force 'bogus': not a stage",
-                       "['ingest', 'trajectory', 'detect', 'estimate', 'score']")
+                       "['ingest', 'trajectory', 'imu', 'detect', 'estimate', 'navigate', "
+                       "'score']")
     assert not (workdir / "runs" / "short").exists()  # checked before anything ran
 
 

@@ -141,17 +141,21 @@ def test_the_dag_follows_from_the_declarations():
     assert set(DAG.upstream["detect"]) == {"ingest", "trajectory"}
     assert DAG.upstream["ingest"] == DAG.upstream["trajectory"] == ()
     assert set(DAG.upstream["estimate"]) == {"detect", "trajectory"}
-    assert set(DAG.upstream["score"]) == {"ingest", "trajectory", "detect", "estimate"}
+    assert set(DAG.upstream["imu"]) == {"trajectory"}
+    assert set(DAG.upstream["navigate"]) == {"trajectory", "imu", "detect", "estimate"}
+    assert set(DAG.upstream["score"]) == {"ingest", "trajectory", "detect", "estimate",
+                                          "navigate"}
     assert set(DAG.upstream["sweep"]) == {"ingest", "trajectory"}
     for name, ups in DAG.upstream.items():  # each upstream stage writes an input of the stage
         for u in ups:
             assert set(DAG[u].outputs) & set(DAG[name].inputs), (name, u)
     order = list(DAG.order)
     assert all(order.index(u) < order.index(n) for n in order for u in DAG.upstream[n])
-    assert DAG.upstream_closure([RUN_TARGET]) == ["ingest", "trajectory", "detect", "estimate",
-                                                  "score"]
+    assert DAG.upstream_closure([RUN_TARGET]) == ["ingest", "trajectory", "imu", "detect",
+                                                  "estimate", "navigate", "score"]
     assert DAG.upstream_closure([SWEEP_TARGET]) == ["ingest", "trajectory", "sweep"]
-    assert DAG.downstream_of("detect") == ["detect", "estimate", "score"]
+    assert DAG.downstream_of("detect") == ["detect", "estimate", "navigate", "score"]
+    assert DAG.downstream_of("imu") == ["imu", "navigate", "score"]
     assert DAG.producer["catalogue.json"] == "ingest"
 
 
@@ -233,7 +237,7 @@ def test_a_comment_in_the_report_module_rekeys_only_the_stages_that_import_it(mo
 def test_an_operation_edit_rekeys_its_stages_and_their_downstream(monkeypatch):
     code0, code1, key0, key1 = hashes_with_edit(monkeypatch, "pipeline.ops.detect")
     assert changed(code0, code1) == {"detect", "sweep"}
-    assert changed(key0, key1) == {"detect", "estimate", "score", "sweep"}
+    assert changed(key0, key1) == {"detect", "estimate", "navigate", "score", "sweep"}
 
 
 @pytest.mark.parametrize("module", ["pipeline.io.store", "pipeline.engine.executor",

@@ -14,9 +14,20 @@ from typing import Protocol
 
 import numpy as np
 
-from pipeline.core import camera, identification, measurement, tiling
+from pipeline.core import camera, conics, identification, illumination, measurement, sensor, tiling
 
 _STREAM_TAG = 0xDE7EC7  # separates detection streams from other users of the run seed
+
+# The physical sensor's per-detection columns: the measured and the true rim ellipse
+# (undistorted image, px; angle of the major axis from +u towards +v), the apparent diameter
+# (px), the range from the apparent size (m), the solar incidence, emission and phase angles at
+# the crater (deg), the detection probability, and the world's crater (diameter, MCMF centre).
+PHYSICAL_COLUMNS = (
+    "ellipse_u_px", "ellipse_v_px", "semi_major_px", "semi_minor_px", "ellipse_angle_rad",
+    "true_ellipse_u_px", "true_ellipse_v_px", "true_semi_major_px", "true_semi_minor_px",
+    "true_ellipse_angle_rad", "apparent_diam_px", "rho_size_m", "incidence_deg", "emission_deg",
+    "phase_deg", "p_detect", "true_diam_km", "c_true_mcmf_x_m", "c_true_mcmf_y_m",
+    "c_true_mcmf_z_m")
 
 
 class CraterArrays(Protocol):
@@ -27,8 +38,23 @@ class CraterArrays(Protocol):
 
 
 @dataclass(frozen=True)
+class PhysicalSensor:
+    """The physical sensor (`pipeline.core.sensor`): pixel camera, detectability, pixel noise,
+    the bearing and range sources, and the world's differences from the catalogue."""
+
+    camera: camera.PixelCamera
+    detectability: sensor.Detectability
+    sigma_px: float  # ellipse centre and semi-axes, 1-sigma
+    corrected_bearing: bool  # the crater centre recovered from the conic, not the ellipse centre
+    range_source: str  # per_crater | apparent_size | none
+    catalogue_errors: sensor.CatalogueErrors
+    world_seed: int  # the catalogue errors' seed (the world is fixed, frame after frame)
+
+
+@dataclass(frozen=True)
 class DetectionModel:
-    """Camera, visibility rule, identification, selection and noise of the detection stage."""
+    """Camera, visibility rule, identification, selection and noise of the detection stage;
+    with `physical`, the physical sensor replaces Eq. 9 and Eq. 10 (ranges per range_source)."""
 
     fov: camera.FieldOfView
     image_size_px: int
@@ -42,6 +68,7 @@ class DetectionModel:
     sigma_bearing: float
     sigma_range_m: float
     moon_radius_m: float
+    physical: PhysicalSensor | None = None
 
     @property
     def k(self) -> np.ndarray:
@@ -64,6 +91,7 @@ class FrameDetections:
     n_candidates: int  # in the field of view and on the visible side, any size
     d_min_km: float  # Eq. 9 threshold at this altitude
     corners_mcmf_m: np.ndarray  # (4, 3) limit lines' surface intersections, NaN where they miss
+    physical: dict[str, np.ndarray] | None = None  # the physical sensor's columns (n,) each
 
     @property
     def false_match(self) -> np.ndarray:
@@ -71,20 +99,30 @@ class FrameDetections:
 
 
 def frame_rngs(seed: int, frame: int) -> dict[str, np.random.Generator]:
-    """Independent generators of one frame: identify, match, select, noise."""
+    """Independent generators of one frame: identify, match, select, noise, and the physical
+    sensor's detect (later children of the same SeedSequence: the first four are unchanged)."""
     ss = np.random.SeedSequence(entropy=seed, spawn_key=(_STREAM_TAG, frame))
-    names = ("identify", "match", "select", "noise")
-    return {n: np.random.Generator(np.random.PCG64(s)) for n, s in zip(names, ss.spawn(4),
+    names = ("identify", "match", "select", "noise", "detect")
+    return {n: np.random.Generator(np.random.PCG64(s)) for n, s in zip(names, ss.spawn(5),
                                                                         strict=True)}
 
 
 def detect_frame(model: DetectionModel, craters: CraterArrays, r_mcmf_m: np.ndarray,
                  dcm_body_from_mcmf: np.ndarray, altitude_m: float,
-                 rngs: dict[str, np.random.Generator]) -> FrameDetections:
-    """Detection model of one frame at spacecraft position r_mcmf_m (3,) and attitude."""
+                 rngs: dict[str, np.random.Generator],
+                 sun_mcmf_m: np.ndarray | None = None,
+                 world: sensor.World | None = None) -> FrameDetections:
+    """Detection model of one frame at spacecraft position r_mcmf_m (3,) and attitude; the
+    physical sensor also needs the Sun's position sun_mcmf_m (3,) (m, Moon-centred MCMF) and
+    the world's craters (`sensor.world_craters` of the whole catalogue, aligned with it)."""
     boresight = dcm_body_from_mcmf[2]  # body +z in MCMF
     centre, radius = camera.coverage_cap(r_mcmf_m, boresight, model.fov, model.moon_radius_m)
     rows = tiling.query_cap(craters.index, centre, radius)
+    if model.physical is not None:
+        if sun_mcmf_m is None or world is None:
+            raise ValueError("the physical sensor needs the Sun's position and the world")
+        return _detect_physical(model, model.physical, craters, world, rows, r_mcmf_m,
+                                dcm_body_from_mcmf, rngs, sun_mcmf_m)
     c = craters.r_mcmf_m[rows]
     p_body = (c - r_mcmf_m) @ dcm_body_from_mcmf.T
     in_view = model.fov.contains(p_body) & camera.on_visible_side(c, r_mcmf_m)
@@ -114,3 +152,115 @@ def detect_frame(model: DetectionModel, craters: CraterArrays, r_mcmf_m: np.ndar
         u_meas_body=u_meas, rho_meas_m=rho_meas, pixel_uv=pixel, identified=identified,
         used=used, n_candidates=int(in_view.sum()), d_min_km=d_min_km,
         corners_mcmf_m=r_mcmf_m + dist[:, None] * corner_rays)
+
+
+def _corners(model: DetectionModel, r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray
+             ) -> np.ndarray:
+    corner_rays = model.fov.border_rays_body(1) @ dcm_body_from_mcmf
+    dist = camera.ray_sphere_distance(r_mcmf_m, corner_rays, model.moon_radius_m)
+    return r_mcmf_m + dist[:, None] * corner_rays
+
+
+def _detect_physical(model: DetectionModel, phys: PhysicalSensor, craters: CraterArrays,
+                     world: sensor.World, rows: np.ndarray, r_mcmf_m: np.ndarray,
+                     dcm_body_from_mcmf: np.ndarray, rngs: dict[str, np.random.Generator],
+                     sun_mcmf_m: np.ndarray) -> FrameDetections:
+    """The physical sensor's frame: true rims (the world, not the catalogue) imaged as ellipses,
+    detected by size and lighting, measured with pixel noise; bearings and ranges from the
+    measured ellipses (`pipeline.core.sensor`)."""
+    cam = phys.camera
+    dcm_cam_from_mcmf = cam.dcm_cam_from_body @ dcm_body_from_mcmf
+    c_true, diam_true_m = world.r_mcmf_m[rows], world.diam_m[rows]
+    p_body = (c_true - r_mcmf_m) @ dcm_body_from_mcmf.T
+    in_view = model.fov.contains(p_body) & camera.on_visible_side(c_true, r_mcmf_m)
+    # cheap bounds before the conics: the night side is dark, and no rim's image is wider than
+    # 2 f D / rho (the pinhole stretches the image plane by at most 1 / cos^2 of the off-axis
+    # angle, 2 at a 45 deg corner)
+    sunlit = np.einsum("ij,ij->i", c_true, sun_mcmf_m - c_true) > 0.0
+    rho_m = np.linalg.norm(p_body, axis=1)
+    wide_enough = 2.1 * cam.fx_px * diam_true_m / rho_m >= phys.detectability.min_diameter_px
+    keep = np.flatnonzero(in_view & sunlit & wide_enough)
+    corners = _corners(model, r_mcmf_m, dcm_body_from_mcmf)
+    if keep.size == 0:  # night, or too high: nothing can be detected
+        empty = np.zeros(0)
+        return FrameDetections(
+            row=np.zeros(0, dtype=rows.dtype), matched_row=np.zeros(0, dtype=rows.dtype),
+            u_true_body=np.zeros((0, 3)), rho_true_m=empty, u_meas_body=np.zeros((0, 3)),
+            rho_meas_m=empty, pixel_uv=np.zeros((0, 2)), identified=np.zeros(0, bool),
+            used=np.zeros(0, bool), n_candidates=int(in_view.sum()), d_min_km=float("nan"),
+            corners_mcmf_m=corners, physical={name: empty for name in PHYSICAL_COLUMNS})
+    keep = keep[np.argsort(craters.crater_id[rows[keep]], kind="stable")]
+    conic = conics.rim_conics(c_true[keep], 0.5 * diam_true_m[keep], r_mcmf_m, dcm_cam_from_mcmf,
+                              cam.k)
+    true = conics.ellipse_from_conic(conic)
+    a = true.semi_major_px
+    # the rim's whole ellipse inside the image: its bounding box (half-widths of an ellipse of
+    # semi-axes a, b turned by theta: sqrt(a^2 cos^2 + b^2 sin^2), sqrt(a^2 sin^2 + b^2 cos^2);
+    # in the undistorted image)
+    cos, sin = np.cos(true.angle_rad), np.sin(true.angle_rad)
+    b = true.semi_minor_px
+    half_u = np.sqrt((a * cos) ** 2 + (b * sin) ** 2)
+    half_v = np.sqrt((a * sin) ** 2 + (b * cos) ** 2)
+    u, v = true.centre_px[:, 0], true.centre_px[:, 1]
+    inside = (true.valid & (u - half_u >= 0) & (u + half_u <= cam.width_px)
+              & (v - half_v >= 0) & (v + half_v <= cam.height_px))
+    angles = illumination.crater_illumination_angles(c_true[keep], r_mcmf_m, sun_mcmf_m)
+    p_detect = np.where(inside, sensor.detection_probability(
+        2.0 * np.nan_to_num(a), angles.incidence_rad, angles.emission_rad,
+        min(cam.width_px, cam.height_px), phys.detectability), 0.0)
+    detected = rngs["detect"].random(keep.size) < p_detect
+    sel = keep[detected]
+    row = rows[sel]
+    true_sel = conics.Ellipses(true.centre_px[detected], true.semi_major_px[detected],
+                               true.semi_minor_px[detected], true.angle_rad[detected],
+                               true.valid[detected])
+    meas = sensor.measure_ellipses(rngs["noise"], true_sel, phys.sigma_px)
+    p = p_body[sel]
+    rho_true = np.linalg.norm(p, axis=1)
+    u_true = p / rho_true[:, None]
+
+    identified = identification.identify(rngs["identify"], row.size, model.p_identify)
+    unit = craters.index.unit[row]
+    matched = identification.false_matches(rngs["match"], unit, identified,
+                                           model.false_match_share)
+    # The navigator's rim-plane normal: the vertical of the crater it identified (catalogue),
+    # in camera axes at the attitude (known to arcseconds from a star tracker; its error is
+    # second order in the recovered centre).
+    c_cat = craters.r_mcmf_m[row[matched]]
+    up_cam = (c_cat / np.linalg.norm(c_cat, axis=1, keepdims=True)) @ dcm_cam_from_mcmf.T
+    u_meas = sensor.bearings_body(cam, meas, up_cam if phys.corrected_bearing else None)
+    rho_size = sensor.apparent_size_ranges(cam, meas, up_cam,
+                                           0.5e3 * craters.diam_km[row[matched]])
+    if phys.range_source == "per_crater":
+        rho_meas = rho_true + model.sigma_range_m * rngs["noise"].standard_normal(row.size)
+    elif phys.range_source == "apparent_size":
+        rho_meas = rho_size
+    else:
+        rho_meas = np.full(row.size, np.nan)
+    pixel = cam.project_body(u_meas)
+    used = identification.select_used(rngs["select"], identified, model.max_craters,
+                                      model.selection, craters.diam_km[row], rho_meas, pixel,
+                                      cam.width_px)
+    columns = {
+        "ellipse_u_px": meas.centre_px[:, 0], "ellipse_v_px": meas.centre_px[:, 1],
+        "semi_major_px": meas.semi_major_px, "semi_minor_px": meas.semi_minor_px,
+        "ellipse_angle_rad": meas.angle_rad,
+        "true_ellipse_u_px": true_sel.centre_px[:, 0],
+        "true_ellipse_v_px": true_sel.centre_px[:, 1],
+        "true_semi_major_px": true_sel.semi_major_px,
+        "true_semi_minor_px": true_sel.semi_minor_px,
+        "true_ellipse_angle_rad": true_sel.angle_rad,
+        "apparent_diam_px": 2.0 * true_sel.semi_major_px,
+        "rho_size_m": rho_size,
+        "incidence_deg": np.degrees(angles.incidence_rad[detected]),
+        "emission_deg": np.degrees(angles.emission_rad[detected]),
+        "phase_deg": np.degrees(angles.phase_rad[detected]),
+        "p_detect": p_detect[detected],
+        "true_diam_km": diam_true_m[sel] / 1e3,
+        **{f"c_true_mcmf_{ax}_m": c_true[sel][:, i] for i, ax in enumerate("xyz")},
+    }
+    return FrameDetections(
+        row=row, matched_row=row[matched], u_true_body=u_true, rho_true_m=rho_true,
+        u_meas_body=u_meas, rho_meas_m=rho_meas, pixel_uv=pixel, identified=identified,
+        used=used, n_candidates=int(in_view.sum()), d_min_km=float("nan"),
+        corners_mcmf_m=corners, physical=columns)

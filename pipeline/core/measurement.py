@@ -4,6 +4,13 @@ The bearing is the unit vector from the spacecraft to the crater centre in body 
 noise of `sigma_bearing` per component, renormalised (so ~sigma_bearing rad of tangential error per
 axis); the range is the distance plus Gaussian noise of `sigma_range_m`.
 
+Noise: `sigma_bearing` and `sigma_range_m` are each either one number for every crater (the
+paper) or an (N,) array, one per crater (a pixel camera's bearing noise varies over the image; a
+range from a crater's apparent size has a noise proportional to the range). `noise` validates
+them. Missing ranges: a crater whose range is NaN has a bearing and no range (bearings only): its
+range residual and range Jacobian row are zero, so it adds 2 measurements instead of 3
+(`measurement_count`); `has_range` says the same for functions that take no measured range.
+
 Two halves: the simulator (`true_bearings`, `measure`) and the navigator's model h(x), H(x) and
 normalised residuals (`predict`, `jacobians`, `whitened_jacobian`, `whitened_system`,
 `squared_normalised_residuals`), the one model of the estimators, the Fisher information and
@@ -13,9 +20,14 @@ so that simulated detections stay bit-for-bit as before; `predict` agrees with i
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from pipeline.core.rotations import dcm_from_q, skew
+
+Sigma = float | np.ndarray
+"""A noise standard deviation: one number for every crater, or an (N,) array, one per crater."""
 
 
 def true_bearings(c_m: np.ndarray, r_m: np.ndarray, dcm_body_from_frame: np.ndarray
@@ -27,12 +39,49 @@ def true_bearings(c_m: np.ndarray, r_m: np.ndarray, dcm_body_from_frame: np.ndar
     return (d / rho_m[:, None]) @ dcm_body_from_frame.T, rho_m
 
 
+def noise(name: str, sigma: Sigma, n: int) -> Sigma:
+    """`sigma` checked as a noise standard deviation for n craters: a finite number > 0 (returned
+    as is) or an (n,) array of them (returned as a float array); ValueError naming `name`
+    otherwise (the weights are 1 / sigma^2)."""
+    if np.ndim(sigma) == 0:
+        value = float(sigma)
+        if not (math.isfinite(value) and value > 0.0):
+            raise ValueError(f"{name} must be finite and > 0, got {sigma!r}")
+        return sigma
+    arr = np.asarray(sigma, dtype=float)
+    if arr.shape != (n,):
+        raise ValueError(f"{name} must be a number or one value per crater, shape ({n},), got "
+                         f"shape {arr.shape}")
+    if not np.all(np.isfinite(arr) & (arr > 0.0)):
+        bad = int(np.flatnonzero(~(np.isfinite(arr) & (arr > 0.0)))[0])
+        raise ValueError(f"{name} must be finite and > 0 for every crater, got {arr[bad]!r} "
+                         f"at index {bad}")
+    return arr
+
+
+def per_crater(sigma: Sigma, rows: np.ndarray) -> Sigma:
+    """The noise of the craters `rows` (an index or mask): a number stays a number."""
+    return sigma if np.ndim(sigma) == 0 else np.asarray(sigma)[rows]
+
+
+def _col(sigma: Sigma, extra_axes: int) -> Sigma:
+    """`sigma` shaped to divide arrays (N, ...) with `extra_axes` trailing axes row by row."""
+    return sigma if np.ndim(sigma) == 0 else np.asarray(sigma).reshape((-1,) + (1,) * extra_axes)
+
+
+def measurement_count(rho_m: np.ndarray) -> int:
+    """Scalar measurements of craters with ranges `rho_m` (N,) (m, NaN where absent): 2 per
+    bearing (its tangent components) and 1 per range."""
+    return 2 * int(np.size(rho_m)) + int(np.count_nonzero(~np.isnan(rho_m)))
+
+
 def measure(rng: np.random.Generator, u_body: np.ndarray, rho_m: np.ndarray,
-            sigma_bearing: float, sigma_range_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Noisy unit bearings (N, 3) and ranges (N,) (m): Eq. 10 renormalised, Eq. 11."""
-    noisy = u_body + sigma_bearing * rng.standard_normal(u_body.shape)
+            sigma_bearing: Sigma, sigma_range_m: Sigma) -> tuple[np.ndarray, np.ndarray]:
+    """Noisy unit bearings (N, 3) and ranges (N,) (m): Eq. 10 renormalised, Eq. 11; noise one
+    number for all craters or (N,) per crater (not validated: zero noise is the truth)."""
+    noisy = u_body + _col(sigma_bearing, 1) * rng.standard_normal(u_body.shape)
     u_meas = noisy / np.linalg.norm(noisy, axis=1, keepdims=True)
-    return u_meas, rho_m + sigma_range_m * rng.standard_normal(rho_m.shape)
+    return u_meas, rho_m + _col(sigma_range_m, 0) * rng.standard_normal(rho_m.shape)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -72,33 +121,47 @@ def jacobians(r_mci_m: np.ndarray, q_mci_from_body: np.ndarray, c_mci_m: np.ndar
 
 
 def whitened_jacobian(r_mci_m: np.ndarray, q_mci_from_body: np.ndarray, c_mci_m: np.ndarray, *,
-                      sigma_bearing: float, sigma_range_m: float
+                      sigma_bearing: Sigma, sigma_range_m: Sigma,
+                      has_range: np.ndarray | None = None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`predict`'s bearings (N, 3) and ranges (N,) (m) and the whitened Jacobian J (N, 4, 6) of
     [range, bearing x, y, z] over the state [dr MCI (m), dtheta body (rad)]: `jacobians` divided
-    by `sigma_range_m` (m) and `sigma_bearing` (~rad per tangent axis, Eq. 10). sum J^T J is the
-    Fisher information (the bearing rows are tangent to the bearing, so rank 2 each)."""
+    by `sigma_range_m` (m) and `sigma_bearing` (~rad per tangent axis, Eq. 10), each a number or
+    (N,) per crater. `has_range` (N,) bool: craters with a range measurement (None: all); the
+    range row of the others is zero. sum J^T J is the Fisher information (the bearing rows are
+    tangent to the bearing, so rank 2 each)."""
     u_pred, rho_pred, drho_dr, du_dr, du_dtheta = jacobians(r_mci_m, q_mci_from_body, c_mci_m)
-    jac = np.zeros((rho_pred.size, 4, 6))
-    jac[:, 0, :3] = drho_dr / sigma_range_m
-    jac[:, 1:, :3] = du_dr / sigma_bearing
-    jac[:, 1:, 3:] = du_dtheta / sigma_bearing
+    n = rho_pred.size
+    sigma_b = _col(noise("sigma_bearing", sigma_bearing, n), 2)
+    jac = np.zeros((n, 4, 6))
+    jac[:, 0, :3] = drho_dr / _col(noise("sigma_range_m", sigma_range_m, n), 1)
+    jac[:, 1:, :3] = du_dr / sigma_b
+    jac[:, 1:, 3:] = du_dtheta / sigma_b
+    if has_range is not None:
+        has = np.asarray(has_range, dtype=bool)
+        if has.shape != (n,):
+            raise ValueError(f"has_range must have shape ({n},), got {has.shape}")
+        jac[~has, 0, :] = 0.0
     return u_pred, rho_pred, jac
 
 
 def whitened_system(r_mci_m: np.ndarray, q_mci_from_body: np.ndarray, c_mci_m: np.ndarray,
-                    u_body: np.ndarray, rho_m: np.ndarray, *, sigma_bearing: float,
-                    sigma_range_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    u_body: np.ndarray, rho_m: np.ndarray, *, sigma_bearing: Sigma,
+                    sigma_range_m: Sigma) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Whitened residuals e (N, 4), Jacobian J (N, 4, 6) (`whitened_jacobian`) and predicted
-    ranges (N,) (m) of measured bearings `u_body` (N, 3) and ranges `rho_m` (N,) (m) at the
-    pose. The bearing residual is the part of u - h_b tangent to h_b. Gauss-Newton steps by
-    (sum J^T J)^-1 sum J^T e."""
+    ranges (N,) (m) of measured bearings `u_body` (N, 3) and ranges `rho_m` (N,) (m; NaN: no
+    range, whose residual and row are then zero) at the pose. The bearing residual is the part
+    of u - h_b tangent to h_b. Gauss-Newton steps by (sum J^T J)^-1 sum J^T e."""
+    missing = np.isnan(rho_m)
     u_pred, rho_pred, jac = whitened_jacobian(r_mci_m, q_mci_from_body, c_mci_m,
                                               sigma_bearing=sigma_bearing,
-                                              sigma_range_m=sigma_range_m)
+                                              sigma_range_m=sigma_range_m,
+                                              has_range=~missing if missing.any() else None)
     e = np.empty((rho_pred.size, 4))
-    e[:, 0] = (rho_m - rho_pred) / sigma_range_m
-    e[:, 1:] = _tangent(u_body - u_pred, u_pred) / sigma_bearing
+    e[:, 0] = (rho_m - rho_pred) / _col(sigma_range_m, 0)
+    e[:, 1:] = _tangent(u_body - u_pred, u_pred) / _col(sigma_bearing, 1)
+    if missing.any():
+        e[missing, 0] = 0.0
     return e, jac, rho_pred
 
 
@@ -109,10 +172,17 @@ def _tangent(v: np.ndarray, u: np.ndarray) -> np.ndarray:
 
 def squared_normalised_residuals(r_mci_m: np.ndarray, q_mci_from_body: np.ndarray,
                                  c_mci_m: np.ndarray, u_body: np.ndarray, rho_m: np.ndarray, *,
-                                 sigma_bearing: float, sigma_range_m: float) -> np.ndarray:
+                                 sigma_bearing: Sigma, sigma_range_m: Sigma) -> np.ndarray:
     """Per crater (N,): ((rho - h_rho) / sigma_range)^2 + |tangent part of u - h_b|^2 /
-    sigma_bearing^2, chi-square with 3 dof at the true pose (1 range, 2 bearing components)."""
+    sigma_bearing^2 (noise a number or (N,) per crater), chi-square with 3 dof at the true pose
+    (1 range, 2 bearing components); a NaN range adds nothing (2 dof)."""
+    n = np.size(rho_m)
+    sigma_b = noise("sigma_bearing", sigma_bearing, n)
+    sigma_r = noise("sigma_range_m", sigma_range_m, n)
     u_pred, rho_pred = predict(r_mci_m, q_mci_from_body, c_mci_m)
     e_t = _tangent(u_body - u_pred, u_pred)
-    return ((rho_m - rho_pred) / sigma_range_m) ** 2 \
-        + np.einsum("ij,ij->i", e_t, e_t) / sigma_bearing**2
+    range_term = ((rho_m - rho_pred) / sigma_r) ** 2
+    missing = np.isnan(rho_m)
+    if missing.any():
+        range_term = np.where(missing, 0.0, range_term)
+    return range_term + np.einsum("ij,ij->i", e_t, e_t) / sigma_b**2

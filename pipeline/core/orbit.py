@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.core import rotations
 from pipeline.core.constants import MOON_GM_M3_S2, MOON_RADIUS_M
+from pipeline.core.rotations import cross
 
 
 def time_from_apoapsis_to_radius(apoapsis_radius_m: float, periapsis_radius_m: float,
@@ -77,13 +78,6 @@ def apoapsis_state(apoapsis_radius_m: float, periapsis_radius_m: float, inclinat
     return r_mci_m, v_mci_m_s
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b for (..., 3) arrays (np.cross is slow for the integrator's single vectors)."""
-    a1, a2, a3 = a[..., 0], a[..., 1], a[..., 2]
-    b1, b2, b3 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a2 * b3 - a3 * b2, a3 * b1 - a1 * b3, a1 * b2 - a2 * b1], axis=-1)
-
-
 def nadir_body_rate(r_mci_m: np.ndarray, v_mci_m_s: np.ndarray,
                     a_nongrav_mci_m_s2: np.ndarray) -> np.ndarray:
     """Angular velocity (rad/s) of the orbit frame w.r.t. MCI in orbit axes, (..., 3): the body rate
@@ -95,7 +89,7 @@ def nadir_body_rate(r_mci_m: np.ndarray, v_mci_m_s: np.ndarray,
     r = np.asarray(r_mci_m, dtype=float)
     v = np.asarray(v_mci_m_s, dtype=float)
     a = np.asarray(a_nongrav_mci_m_s2, dtype=float)
-    h = _cross(r, v)
+    h = cross(r, v)
     r_norm = np.linalg.norm(r, axis=-1)
     h_norm = np.linalg.norm(h, axis=-1)
     a_y = -np.sum(a * h, axis=-1) / h_norm
@@ -108,7 +102,7 @@ def quat_rate(q_a_from_b: np.ndarray, omega_b_rad_s: np.ndarray) -> np.ndarray:
     q = np.asarray(q_a_from_b, dtype=float)
     w = np.asarray(omega_b_rad_s, dtype=float)
     qv, qw = q[..., :3], q[..., 3:]
-    vec = qw * w + _cross(qv, w)
+    vec = qw * w + cross(qv, w)
     scalar = -np.sum(qv * w, axis=-1, keepdims=True)
     return 0.5 * np.concatenate([vec, scalar], axis=-1)
 

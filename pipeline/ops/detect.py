@@ -7,10 +7,31 @@ import numpy as np
 import polars as pl
 
 from pipeline.config import DetectionConfig
-from pipeline.core import camera, frames, identification, rotations
+from pipeline.core import camera, frames, identification, illumination, rotations, sensor
 from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.detection import CraterArrays, DetectionModel, detect_frame, frame_rngs
+from pipeline.core.detection import (
+    PHYSICAL_COLUMNS,
+    CraterArrays,
+    DetectionModel,
+    PhysicalSensor,
+    detect_frame,
+    frame_rngs,
+)
 from pipeline.io.tables import quats, xyz, xyz_columns
+
+
+def physical_sensor(d: DetectionConfig) -> PhysicalSensor:
+    """The physical sensor of the `detection` options."""
+    return PhysicalSensor(
+        camera=d.pixel_camera(),
+        detectability=sensor.Detectability(min_diameter_px=d.detect_min_diameter_px,
+                                           full_diameter_px=2.0 * d.detect_min_diameter_px),
+        sigma_px=d.pixel_sigma_px, corrected_bearing=d.bearing == "corrected",
+        range_source=d.range_source,
+        catalogue_errors=sensor.CatalogueErrors(d.catalogue_sigma_horizontal_m,
+                                                d.catalogue_sigma_height_m,
+                                                d.catalogue_sigma_diameter_share),
+        world_seed=d.world_seed)
 
 
 def model_of(d: DetectionConfig) -> DetectionModel:
@@ -21,12 +42,17 @@ def model_of(d: DetectionConfig) -> DetectionModel:
         visibility_b_per_km=d.visibility_b_per_km, visibility_diam_unit=d.visibility_diam_unit,
         p_identify=d.p_identify, max_craters=d.max_craters, selection=d.selection,
         false_match_share=d.false_match_share, sigma_bearing=d.sigma_bearing,
-        sigma_range_m=d.sigma_range_m, moon_radius_m=MOON_RADIUS_M)
+        sigma_range_m=d.sigma_range_m, moon_radius_m=MOON_RADIUS_M,
+        physical=physical_sensor(d) if d.sensor == "physical" else None)
 
 
 def detect_all(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFrame, seed: int,
-               advance=None) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """Detections (one row per visible crater and frame) and the per-frame table."""
+               advance=None, sun_mcmf_m: np.ndarray | None = None
+               ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """Detections (one row per visible crater and frame) and the per-frame table; with the Sun's
+    positions sun_mcmf_m (F, 3) (m, Moon-centred MCMF) the frames get the Sun's direction, its
+    elevation under the spacecraft and the ground sample distance (the physical sensor needs
+    them)."""
     frame = trajectory["frame"].to_numpy()
     t_s = trajectory["t_s"].to_numpy()
     theta = trajectory["theta_m_rad"].to_numpy()
@@ -34,10 +60,15 @@ def detect_all(model: DetectionModel, craters: CraterArrays, trajectory: pl.Data
     r_mcmf = xyz(trajectory, "r_mcmf", "_m")
     dcm_mci_from_body = rotations.dcm_from_q(quats(trajectory, "q_mci_from_body"))
     dcm_body_from_mcmf = np.swapaxes(dcm_mci_from_body, -1, -2) @ frames.dcm_mci_from_mcmf(theta)
+    world = None
+    if model.physical is not None:  # the world's craters, drawn once for the whole catalogue
+        world = sensor.world_craters(craters.r_mcmf_m, craters.diam_km * 1e3, craters.crater_id,
+                                     model.physical.catalogue_errors, model.physical.world_seed)
     per_frame = []
     for i in range(frame.size):
         per_frame.append(detect_frame(model, craters, r_mcmf[i], dcm_body_from_mcmf[i], alt_m[i],
-                                      frame_rngs(seed, int(frame[i]))))
+                                      frame_rngs(seed, int(frame[i])),
+                                      None if sun_mcmf_m is None else sun_mcmf_m[i], world))
         if advance is not None:
             advance()
     counts = np.array([f.row.size for f in per_frame], dtype=np.int64)
@@ -63,6 +94,10 @@ def detect_all(model: DetectionModel, craters: CraterArrays, trajectory: pl.Data
         "identified": cat("identified").astype(bool), "used": cat("used").astype(bool),
         "false_match": row != matched,
     })
+    if model.physical is not None:
+        detections = detections.with_columns(**{
+            n: np.concatenate([f.physical[n] for f in per_frame if f.physical is not None])
+            for n in PHYSICAL_COLUMNS})
     corners = np.stack([f.corners_mcmf_m for f in per_frame]) if per_frame else np.empty((0, 4, 3))
     lat, lon, _ = frames.latlon_from_mcmf(corners)
     frames_table = pl.DataFrame({
@@ -77,7 +112,23 @@ def detect_all(model: DetectionModel, craters: CraterArrays, trajectory: pl.Data
         **{f"corner{j + 1}_lon_deg": np.degrees(lon[:, j]) for j in range(4)},
     }, schema_overrides={"n_candidates": pl.Int64, "n_identified": pl.Int64,
                          "n_used": pl.Int64, "n_false_match": pl.Int64})
+    if sun_mcmf_m is not None:
+        frames_table = frames_table.with_columns(**sun_columns(model, trajectory, sun_mcmf_m))
     return detections, frames_table
+
+
+def sun_columns(model: DetectionModel, trajectory: pl.DataFrame, sun_mcmf_m: np.ndarray
+                ) -> dict[str, np.ndarray]:
+    """Per frame: the Sun's unit direction in MCI, its elevation (deg) at the sub-spacecraft
+    point, and the ground sample distance (m/px) at nadir."""
+    r_mcmf = xyz(trajectory, "r_mcmf", "_m")
+    sun_mci = frames.mci_from_mcmf(sun_mcmf_m, trajectory["theta_m_rad"].to_numpy())
+    sun_mci /= np.linalg.norm(sun_mci, axis=1, keepdims=True)
+    elevation = illumination.sub_spacecraft_sun_elevation_rad(r_mcmf, sun_mcmf_m, MOON_RADIUS_M)
+    f_px = float(model.k[0, 0])
+    return {**xyz_columns("sun_mci", "", sun_mci), "sun_elevation_deg": np.degrees(elevation),
+            "gsd_m": illumination.ground_sample_distance_m(trajectory["altitude_m"].to_numpy(),
+                                                            f_px)}
 
 
 def reselect(detections: pl.DataFrame, cap: int | None, strategy: str, seed: int,

@@ -15,6 +15,7 @@ import numpy as np
 import polars as pl
 
 from pipeline.core.estimators import CheckOptions, PoseEstimate, RobustOptions, estimate_pose
+from pipeline.core.sensor import SensorNoise, measurement_sigmas
 from pipeline.io.tables import quat_columns, xyz, xyz_columns
 
 _STREAM_TAG = 0xE57  # separates the robust estimator's streams from other users of the seed
@@ -31,7 +32,9 @@ class UsedCraters:
     matched_id: np.ndarray  # (N,) catalogue id each crater was identified as
     c_mci_m: np.ndarray  # (N, 3)
     u_body: np.ndarray  # (N, 3) measured bearings
-    rho_m: np.ndarray  # (N,) measured ranges
+    rho_m: np.ndarray  # (N,) measured ranges (NaN: none)
+    semi_major_px: np.ndarray  # (N,) apparent semi-major axis (physical sensor; NaN otherwise)
+    rho_size_m: np.ndarray  # (N,) range from the apparent size (physical sensor; NaN otherwise)
 
     @classmethod
     def from_tables(cls, detections: pl.DataFrame, frames_table: pl.DataFrame,
@@ -41,9 +44,30 @@ class UsedCraters:
         d = detections.filter(pl.Series(mask))
         frame = frames_table["frame"].to_numpy()
         start = np.searchsorted(d["frame"].to_numpy(), frame, side="left")
+        def column(name: str) -> np.ndarray:
+            return d[name].to_numpy() if name in d.columns else np.full(d.height, np.nan)
+
         return cls(frame, frames_table["t_s"].to_numpy(), np.r_[start, d.height],
                    d["det_index"].to_numpy(), d["matched_id"].to_numpy(),
-                   xyz(d, "c_mci", "_m"), xyz(d, "u_meas_body", ""), d["rho_meas_m"].to_numpy())
+                   xyz(d, "c_mci", "_m"), xyz(d, "u_meas_body", ""), d["rho_meas_m"].to_numpy(),
+                   column("semi_major_px"), column("rho_size_m"))
+
+    def sigmas(self, a: int, b: int, scalar: tuple[float, float], noise: SensorNoise | None,
+               sightings: np.ndarray | None = None
+               ) -> tuple[float | np.ndarray, float | np.ndarray]:
+        """The noise the navigator assumes for rows a:b: the scalars (the paper's sensor), or per
+        crater from the physical sensor's noise model at the measured range (the apparent-size
+        range where there is none) and apparent size."""
+        if noise is None:
+            return scalar
+        rho = np.where(np.isfinite(self.rho_m[a:b]), self.rho_m[a:b], self.rho_size_m[a:b])
+        return measurement_sigmas(noise, rho, self.semi_major_px[a:b],
+                                  None if sightings is None else sightings[a:b])
+
+    def sightings(self) -> np.ndarray:
+        """Per row (N,): in how many frames its catalogue crater is used over the run."""
+        _, inverse, counts = np.unique(self.matched_id, return_inverse=True, return_counts=True)
+        return counts[inverse]
 
 
 @dataclass(frozen=True)
@@ -58,6 +82,7 @@ class EstimateOptions:
     robust: RobustOptions | None  # RANSAC + chi-square gate, or None
     checks: CheckOptions  # when a fix is ill_conditioned, below_surface or inconsistent
     cap: int | None  # the detection cap the craters were selected under (recorded per row)
+    sensor_noise: SensorNoise | None = None  # physical sensor: per-crater noise (else the scalars)
 
 
 def estimate_all(craters: UsedCraters, opts: EstimateOptions, seed: int, advance=None
@@ -73,10 +98,12 @@ def estimate_all(craters: UsedCraters, opts: EstimateOptions, seed: int, advance
             if robust is not None:
                 ss = np.random.SeedSequence(seed, spawn_key=(_STREAM_TAG, int(frame), m_index))
                 rng = np.random.Generator(np.random.PCG64(ss))
+            sigma_b, sigma_r = craters.sigmas(a, b, (opts.sigma_bearing, opts.sigma_range_m),
+                                              opts.sensor_noise)
             t0 = time.perf_counter()
             est = estimate_pose(method, craters.c_mci_m[a:b], craters.u_body[a:b],
-                                craters.rho_m[a:b], sigma_bearing=opts.sigma_bearing,
-                                sigma_range_m=opts.sigma_range_m, r_prior_mci_m=prior,
+                                craters.rho_m[a:b], sigma_bearing=sigma_b,
+                                sigma_range_m=sigma_r, r_prior_mci_m=prior,
                                 step_tol_m=opts.step_tol_m, max_iterations=opts.max_iterations,
                                 robust=robust, rng=rng, checks=opts.checks)
             solve_ms = (time.perf_counter() - t0) * 1e3
@@ -94,7 +121,7 @@ def _row(frame: int, t_s: float, method: str, est: PoseEstimate, solve_ms: float
     measurements, which no estimator can use, are not counted as outliers)."""
     finite = (np.all(np.isfinite(craters.c_mci_m[a:b]), axis=1)
               & np.all(np.isfinite(craters.u_body[a:b]), axis=1)
-              & np.isfinite(craters.rho_m[a:b]))
+              & ~np.isinf(craters.rho_m[a:b]))  # a NaN range is no range, not a bad row
     rejected = finite & ~est.inliers if est.status == "ok" else np.zeros(b - a, bool)
     return {"frame": frame, "t_s": t_s, "method": method, "status": est.status,
             "r": est.r_mci_m, "q": est.q_mci_from_body, "cov": est.cov,

@@ -15,6 +15,7 @@ import polars as pl
 
 from pipeline.config import ScoringConfig, Window
 from pipeline.core import estimators, frames, metrics, rotations
+from pipeline.core.sensor import SensorNoise, measurement_sigmas
 from pipeline.io.tables import quats, xyz
 from pipeline.vocab import ATTITUDE, ATTITUDE_MCI, POSITION, QUANTITIES
 
@@ -37,8 +38,11 @@ def windows(scoring: ScoringConfig, t_impact_s: float) -> tuple[Window, ...]:
 def true_used_positions(detections: pl.DataFrame, lookup: CraterLookup) -> np.ndarray:
     """MCI positions (N, 3) of the craters actually seen in the used rows: the catalogue position
     given to the estimator, except for false matches, where it is the true crater's (`lookup`,
-    rotated to MCI with the row's `theta_m_rad`)."""
+    rotated to MCI with the row's `theta_m_rad`); with the physical sensor, the world's crater
+    (`c_true_mcmf_*`: the catalogue entry plus its error)."""
     used = detections.filter(pl.col("used"))
+    if "c_true_mcmf_x_m" in used.columns:
+        return frames.mci_from_mcmf(xyz(used, "c_true_mcmf", "_m"), used["theta_m_rad"].to_numpy())
     c = xyz(used, "c_mci", "_m")
     false = used["false_match"].to_numpy()
     if false.any():
@@ -49,18 +53,32 @@ def true_used_positions(detections: pl.DataFrame, lookup: CraterLookup) -> np.nd
 
 
 def crlb_per_frame(trajectory: pl.DataFrame, used: pl.DataFrame, c_true_mci: np.ndarray,
-                   sigma_bearing: float, sigma_range_m: float, advance=None) -> np.ndarray:
-    """(F, 6, 6) CRLB per trajectory frame for its used craters; NaN without enough information."""
+                   sigma_bearing: float, sigma_range_m: float, advance=None,
+                   sensor_noise: SensorNoise | None = None) -> np.ndarray:
+    """(F, 6, 6) CRLB per trajectory frame for its used craters; NaN without enough information.
+    With `sensor_noise` (the physical sensor's true noise) each crater has its own noise, from
+    its true range and apparent size, and only craters with a range measurement count one."""
     frame = trajectory["frame"].to_numpy()
     r = xyz(trajectory, "r_mci", "_m")
     q = quats(trajectory, "q_mci_from_body")
     start = np.r_[np.searchsorted(used["frame"].to_numpy(), frame), used.height]
     out = np.full((frame.size, 6, 6), np.nan)
+    has_range = np.isfinite(used["rho_meas_m"].to_numpy())
+    rho_true = used["rho_true_m"].to_numpy()
+    semi_major = (used["true_semi_major_px"].to_numpy() if sensor_noise is not None
+                  else np.empty(0))
     for i in range(frame.size):
         a, b = start[i], start[i + 1]
         if b - a >= 3:
-            out[i] = estimators.crlb(r[i], q[i], c_true_mci[a:b], sigma_bearing=sigma_bearing,
-                                     sigma_range_m=sigma_range_m)
+            sigma_b: float | np.ndarray = sigma_bearing
+            sigma_r: float | np.ndarray = sigma_range_m
+            ranged = None
+            if sensor_noise is not None:
+                sigma_b, sigma_r = measurement_sigmas(sensor_noise, rho_true[a:b],
+                                                      semi_major[a:b])
+                ranged = has_range[a:b]
+            out[i] = estimators.crlb(r[i], q[i], c_true_mci[a:b], sigma_bearing=sigma_b,
+                                     sigma_range_m=sigma_r, has_range=ranged)
         if advance is not None:
             advance()
     return out
@@ -134,11 +152,64 @@ def summarize(scores: pl.DataFrame, wins: tuple[Window, ...]) -> pl.DataFrame:
 
 def score_run(trajectory: pl.DataFrame, detections: pl.DataFrame, estimates: pl.DataFrame,
               lookup: CraterLookup, sigma_bearing: float, sigma_range_m: float,
-              advance=None) -> pl.DataFrame:
+              advance=None, sensor_noise: SensorNoise | None = None) -> pl.DataFrame:
     """Scores of every method and frame: `detections` carry `theta_m_rad` (joined from the
-    trajectory) and their `used` mask; the bound uses the true noise `sigma_*`."""
+    trajectory) and their `used` mask; the bound uses the true noise `sigma_*` (or the physical
+    sensor's `sensor_noise`)."""
     c_true = true_used_positions(detections, lookup)
     used = detections.filter(pl.col("used"))
-    crlb = crlb_per_frame(trajectory, used, c_true, sigma_bearing, sigma_range_m, advance)
+    crlb = crlb_per_frame(trajectory, used, c_true, sigma_bearing, sigma_range_m, advance,
+                          sensor_noise)
     return score_frames(trajectory, estimates, crlb)
 
+
+
+NAV_SOURCES = ("filter", "smoother", "imu_only")  # the navigation table's error column prefixes
+_NAV_PREFIX = {"filter": "", "smoother": "smoothed_", "imu_only": "imu_only_"}
+
+
+def summarize_navigation(nav: pl.DataFrame, wins: tuple[Window, ...]) -> pl.DataFrame:
+    """Per source (the filter, the RTS smoother, the IMU-only path) and window: position RMSE per
+    MCI axis (m), velocity RMSE (m/s), attitude RMSE per body axis (deg), the error norm at the
+    window's last record (m), the share of records whose position error lies inside +-3 sigma
+    on every axis, the mean NEES of position, velocity and attitude (3 dof each; filter and
+    smoother) and the updates rejected by the gate. Sources without values are left out."""
+    t = nav["t_s"].to_numpy()
+    ok = (nav["status"] != "not_initialised").to_numpy()
+    rows = []
+    for source in NAV_SOURCES:
+        p = _NAV_PREFIX[source]
+        err = np.stack([nav[f"{p}err_pos_{c}_m"].to_numpy() for c in "xyz"], 1)
+        if not np.isfinite(err).any():
+            continue
+        vel = (np.stack([nav[f"{p}err_vel_{c}_m_s"].to_numpy() for c in "xyz"], 1)
+               if source != "imu_only" else np.full_like(err, np.nan))
+        att = (np.degrees(np.stack([nav[f"{p}err_att_{c}_rad"].to_numpy() for c in "xyz"], 1))
+               if source != "imu_only" else np.full_like(err, np.nan))
+        sig = (np.stack([nav[f"{p}sigma_pos_{c}_m"].to_numpy() for c in "xyz"], 1)
+               if source != "imu_only" else np.full_like(err, np.nan))
+        for w in wins:
+            sel = (t >= w.start_s) & (t < w.end_s) & ok & np.all(np.isfinite(err), axis=1)
+            rms = np.sqrt(np.mean(err[sel] ** 2, axis=0)) if sel.any() else np.full(3, np.nan)
+            rms_v = np.sqrt(np.mean(vel[sel] ** 2, axis=0)) if sel.any() else np.full(3, np.nan)
+            rms_a = np.sqrt(np.mean(att[sel] ** 2, axis=0)) if sel.any() else np.full(3, np.nan)
+            inside = np.all(np.abs(err[sel]) <= 3.0 * sig[sel], axis=1)
+            row = {"source": source, "window": w.name, "start_s": w.start_s, "end_s": w.end_s,
+                   "records": int(((t >= w.start_s) & (t < w.end_s)).sum()),
+                   "share_estimated": float(sel.sum() / max(((t >= w.start_s)
+                                                             & (t < w.end_s)).sum(), 1)),
+                   **{f"rmse_{c}_m": float(rms[i]) for i, c in enumerate("xyz")},
+                   **{f"rmse_vel_{c}_m_s": float(rms_v[i]) for i, c in enumerate("xyz")},
+                   **{f"rmse_att_{c}_deg": float(rms_a[i]) for i, c in enumerate("xyz")},
+                   "err_last_m": float(np.linalg.norm(err[sel][-1])) if sel.any() else np.nan,
+                   "share_within_3sigma": (float(inside.mean()) if sel.any()
+                                           and source != "imu_only" else np.nan)}
+            for block in ("pos", "vel", "att"):
+                col = f"nees_{block}"
+                row[f"mean_{col}"] = (float(np.nanmean(nav[col].to_numpy()[sel]))
+                                      if source == "filter" and sel.any() else np.nan)
+            for kind in ("craters", "altimeter", "fixes"):
+                row[f"{kind}_rejected"] = (int(nav[f"{kind}_rejected"].to_numpy()[sel].sum())
+                                           if source == "filter" else 0)
+            rows.append(row)
+    return pl.DataFrame(rows)

@@ -31,8 +31,8 @@ def frame_times(t: TrajectoryConfig, t_impact_s: float) -> tuple[np.ndarray, np.
     return k[keep], t_s[keep]
 
 
-def simulate(t: TrajectoryConfig) -> tuple[pl.DataFrame, dict[str, Any]]:
-    """The trajectory table and its scenario facts (solved periapsis, impact time, pointing)."""
+def propagate(t: TrajectoryConfig) -> tuple[orbit.Descent, float]:
+    """The true descent (its dense solution) and the periapsis radius (m) it flies."""
     ra = MOON_RADIUS_M + t.apoapsis_alt_km * 1e3
     if t.periapsis_radius_km is None:
         rp = orbit.periapsis_radius_for_impact(ra, t.impact_time_s)
@@ -48,6 +48,13 @@ def simulate(t: TrajectoryConfig) -> tuple[pl.DataFrame, dict[str, Any]]:
     descent = orbit.propagate_descent(
         r0, v0, q0, specific_force_body_m_s2=t.specific_force_body_m_s2, jitter=jitter,
         rtol=t.rtol, atol_m=t.atol_m)
+    return descent, rp
+
+
+def simulate(t: TrajectoryConfig) -> tuple[pl.DataFrame, dict[str, Any]]:
+    """The trajectory table and its scenario facts (solved periapsis, impact time, pointing)."""
+    ra = MOON_RADIUS_M + t.apoapsis_alt_km * 1e3
+    descent, rp = propagate(t)
     frame, t_s = frame_times(t, descent.t_impact_s)
     if frame.size == 0:
         raise ConfigError(f"trajectory.start_s = {t.start_s:g} s: no frame between start_s and "

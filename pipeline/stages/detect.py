@@ -12,6 +12,7 @@ import polars as pl
 
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
+from pipeline.io import ephemeris
 from pipeline.io.catalogue_db import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.ops.detect import detect_all, model_of
 from pipeline.viz import recording
@@ -22,8 +23,10 @@ def run(ctx: StageContext) -> StageResult:
     trajectory = pl.read_parquet(ctx.input("trajectory.parquet"))
     craters = load_recorded_catalogue(ctx.input("catalogue.json"))
     model = model_of(cfg.detection)
+    epoch = cfg.trajectory.epoch_utc
+    sun = None if epoch is None else ephemeris.sun_mcmf_m(epoch, trajectory["t_s"].to_numpy())
     with progress_bar("detecting craters", trajectory.height) as advance:
-        detections, frames_table = detect_all(model, craters, trajectory, cfg.seed, advance)
+        detections, frames_table = detect_all(model, craters, trajectory, cfg.seed, advance, sun)
     tx.table("detections", detections)
     tx.table("frames", frames_table)
     with recording.recording(ctx.store.run_id, tx.output("detection.rrd")) as rec:
@@ -51,7 +54,7 @@ def run(ctx: StageContext) -> StageResult:
 STAGE = Stage(
     name="detect",
     doc="craters in view, visible (Eq. 9), identified, used; their measurements",
-    reads=("detection", "seed"),
+    reads=("detection", "trajectory.epoch_utc", "seed"),
     inputs=("catalogue.json", "trajectory.parquet"),
     outputs=("detections.parquet", "frames.parquet", "detection.rrd"),
     code=("pipeline.stages.detect",),

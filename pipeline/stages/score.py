@@ -14,12 +14,19 @@ import numpy as np
 import polars as pl
 
 from pipeline.config import RunConfig
+from pipeline.core.sensor import CatalogueErrors, SensorNoise
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.errors import StageInputError
 from pipeline.io.catalogue_db import check_catalogue_unchanged
 from pipeline.io.store import RunStore
-from pipeline.ops.score import CraterLookup, score_run, summarize, windows
+from pipeline.ops.score import (
+    CraterLookup,
+    score_run,
+    summarize,
+    summarize_navigation,
+    windows,
+)
 from pipeline.viz import recording, report
 
 
@@ -46,6 +53,16 @@ def catalogue_lookup(db_path: Path) -> CraterLookup:
     return lookup
 
 
+def true_sensor_noise(cfg: RunConfig) -> SensorNoise | None:
+    """The physical sensor's true measurement noise (the bound's; the catalogue's errors are the
+    world's, not noise, and the bound is computed at the world's craters)."""
+    d = cfg.detection
+    if d.sensor != "physical":
+        return None
+    return SensorNoise(d.pixel_sigma_px, d.pixel_camera().fx_px, d.range_source,
+                       d.sigma_range_m, CatalogueErrors(0.0, 0.0, 0.0))
+
+
 def run(ctx: StageContext) -> StageResult:
     cfg, tx = ctx.cfg, ctx.tx
     trajectory = pl.read_parquet(ctx.input("trajectory.parquet"))
@@ -58,22 +75,28 @@ def run(ctx: StageContext) -> StageResult:
     d = cfg.detection
     with progress_bar("Cramér-Rao bound", trajectory.height) as advance:
         scores = score_run(trajectory, detections, estimates, catalogue_lookup(db),
-                           d.sigma_bearing, d.sigma_range_m, advance)
-    summary = summarize(scores, windows(cfg.scoring, t_impact))
+                           d.sigma_bearing, d.sigma_range_m, advance, true_sensor_noise(cfg))
+    wins = windows(cfg.scoring, t_impact)
+    summary = summarize(scores, wins)
     by_used = report.by_craters_used(scores)
+    navigation = pl.read_parquet(ctx.input("navigation.parquet"))
+    nav_summary = summarize_navigation(navigation, wins)
     tx.table("scores", scores)
     tx.table("summary", summary)
     tx.table("by_craters_used", by_used)
+    tx.table("navigation_summary", nav_summary)
     with recording.recording(ctx.store.run_id, tx.output("scoring.rrd")) as rec:
         recording.log_scoring(rec, scores)
     recording.save_layout(tx.output("layout.rbl"), scores)
     report.write_run_report(tx, cfg, ctx.store.run_id, trajectory, frames_table, scores, summary,
-                            t_impact, by_used=by_used)
+                            t_impact, by_used=by_used, navigation=navigation,
+                            nav_summary=nav_summary)
     folder = ctx.store.stage_dir("score")
     return StageResult(
         info={"t_impact_s": t_impact, "table_window": cfg.scoring.table_window},
         summary=(f"wrote {folder / 'scores.parquet'}, {folder / 'summary.parquet'}, "
-                 f"{folder / 'by_craters_used.parquet'} (tables scores, summary, by_craters_used)",
+                 f"{folder / 'by_craters_used.parquet'}, {folder / 'navigation_summary.parquet'}"
+                 " (tables scores, summary, by_craters_used, navigation_summary)",
                  f"report: {folder / 'report.md'}",
                  f"look at it: rerun {folder / 'scoring.rrd'}"))
 
@@ -101,6 +124,14 @@ def headline(cfg: RunConfig, store: RunStore) -> str:
             f"phi {v['phi_deg']:.5f} theta {v['theta_deg']:.5f} psi {v['psi_deg']:.5f} deg "
             f"(RMSE/sqrt(CRLB) {min(r.values()):.2f}-{max(r.values()):.2f}; {share}"
             + (f"; {others}" if others else "") + ")")
+    nav = pl.read_parquet(store.path("navigation_summary.parquet")).filter(
+        (pl.col("source") == "filter") & (pl.col("window") == w.name))
+    if nav.height:
+        row = nav.row(0, named=True)
+        lines.append(
+            f"  filter RMSE {w.name}: X {row['rmse_x_m']:.3f} Y {row['rmse_y_m']:.3f} Z "
+            f"{row['rmse_z_m']:.3f} m ({row['share_within_3sigma']:.1%} of records inside 3 "
+            f"sigma; mean NEES pos {row['mean_nees_pos']:.2f}, att {row['mean_nees_att']:.2f})")
     lines.append(f"look at it: just view {store.run_id}")
     return "\n".join(lines)
 
@@ -108,11 +139,11 @@ def headline(cfg: RunConfig, store: RunStore) -> str:
 STAGE = Stage(
     name="score",
     doc="errors, Cramér-Rao bound, NEES, windows, figures, report.md",
-    reads=("scoring", "detection.sigma_bearing", "detection.sigma_range_m"),
+    reads=("scoring", "detection"),
     inputs=("trajectory.parquet", "trajectory.json", "catalogue.json", "detections.parquet",
-            "frames.parquet", "estimates.parquet"),
-    outputs=("scores.parquet", "summary.parquet", "by_craters_used.parquet", "scoring.rrd",
-             "layout.rbl", "report.md"),
+            "frames.parquet", "estimates.parquet", "navigation.parquet"),
+    outputs=("scores.parquet", "summary.parquet", "by_craters_used.parquet",
+             "navigation_summary.parquet", "scoring.rrd", "layout.rbl", "report.md"),
     code=("pipeline.stages.score",),
     run=run,
     verify=lambda ctx: check_catalogue_unchanged(ctx.input("catalogue.json")),

@@ -295,10 +295,12 @@ def count_facts(frames_table: pl.DataFrame, study: Study = STUDY) -> str:
 def write_run_report(tx, cfg: RunConfig, run_id: str, trajectory: pl.DataFrame,
                      frames_table: pl.DataFrame, scores: pl.DataFrame, summary: pl.DataFrame,
                      t_impact_s: float, by_used: pl.DataFrame | None = None,
-                     study: Study = STUDY) -> None:
+                     study: Study = STUDY, navigation: pl.DataFrame | None = None,
+                     nav_summary: pl.DataFrame | None = None) -> None:
     """report.md and its figures, written through the stage transaction (`tx.output(name)`
     gives the path to write `name` to). `by_used` is `by_craters_used(scores)` (computed here
-    when not given)."""
+    when not given); `navigation` and `nav_summary` (the filter's table and
+    `summarize_navigation`) add the navigation section."""
     d = cfg.detection
     cap = "no limit" if d.max_craters is None else f"{d.max_craters} ({d.selection})"
     by_used = by_craters_used(scores) if by_used is None else by_used
@@ -348,7 +350,80 @@ seconds before impact); here each bin of craters used stands alone. Cells: RMSE 
 ![errors by craters used](fig_craters_used.png)
 
 {craters_used_table(by_used)}"""
+    if navigation is not None and nav_summary is not None:
+        fig_navigation(navigation, tx.output("fig_navigation.png"),
+                       f"Navigation filter: position error and 3 sigma, MCI axes ({run_id})")
+        text += navigation_section(cfg, nav_summary, summary)
     tx.output("report.md").write_text(text)
+
+
+def fig_navigation(nav: pl.DataFrame, path: Path, title: str) -> None:
+    """Per MCI axis: the filter's position error (m) with its +-3 sigma band, and the IMU-only
+    path's error for scale on a clipped axis."""
+    t = nav["t_s"].to_numpy()
+    fig = Figure(figsize=(9, 7.5))
+    subplots = fig.subplots(3, 1, sharex=True)
+    for ax, c in zip(subplots, "xyz", strict=True):
+        err = nav[f"err_pos_{c}_m"].to_numpy()
+        sig3 = 3.0 * nav[f"sigma_pos_{c}_m"].to_numpy()
+        ax.fill_between(t, -sig3, sig3, color=hex_color(CRLB_COLOR), alpha=0.6, lw=0,
+                        label="+-3 sigma (filter)")
+        ax.plot(t, nav[f"imu_only_err_pos_{c}_m"].to_numpy(), color=_hex("imu_only"), lw=0.8,
+                label="IMU only")
+        ax.plot(t, err, color=_hex("filter"), lw=0.8, label="filter")
+        if nav[f"smoothed_err_pos_{c}_m"].is_not_nan().any():
+            ax.plot(t, nav[f"smoothed_err_pos_{c}_m"].to_numpy(), color=_hex("smoother"), lw=0.8,
+                    label="RTS smoother")
+        ax.axhline(0.0, color="black", lw=0.5)
+        limit = robust_limit(np.concatenate([err, sig3]), 99.0, 1.5)
+        ax.set_ylim(-limit, limit)
+        ax.set_ylabel(f"{c} error (m)")
+    _finish_stack(fig, subplots, title, path)
+
+
+def navigation_section(cfg: RunConfig, nav_summary: pl.DataFrame, summary: pl.DataFrame) -> str:
+    """The report's navigation section: per window the filter's position RMSE beside the
+    single-frame methods', the share inside 3 sigma, the mean NEES and the rejected updates."""
+    n = cfg.navigation
+    outage = ("none" if n.outage_start_s is None
+              else f"{n.outage_start_s:g}-{n.outage_end_s:g} s")
+    head = ("| source | window | X (m) | Y (m) | Z (m) | error at last record (m) | "
+            "inside 3 sigma | mean NEES pos / vel / att (3) | craters rejected | "
+            "altimeter rejected |\n|---|---|---|---|---|---|---|---|---|---|")
+    body = []
+    for window in nav_summary["window"].unique(maintain_order=True).to_list():
+        for row in nav_summary.filter(pl.col("window") == window).iter_rows(named=True):
+            nees = (f"{_fmt(row['mean_nees_pos'])} / {_fmt(row['mean_nees_vel'])} / "
+                    f"{_fmt(row['mean_nees_att'])}" if row["source"] == "filter" else "")
+            inside = ("" if not np.isfinite(row["share_within_3sigma"])
+                      else f"{row['share_within_3sigma']:.1%}")
+            body.append(f"| {row['source']} | {window} | {_fmt(row['rmse_x_m'])} | "
+                        f"{_fmt(row['rmse_y_m'])} | {_fmt(row['rmse_z_m'])} | "
+                        f"{_fmt(row['err_last_m'])} | {inside} | {nees} | "
+                        f"{row['craters_rejected']} | {row['altimeter_rejected']} |")
+        for method in summary["method"].unique(maintain_order=True).to_list():
+            s = summary.filter((pl.col("method") == method) & (pl.col("window") == window))
+            if s.height:
+                v = dict(zip(s["quantity"].to_list(), s["rmse"].to_list(), strict=True))
+                body.append(f"| {method} (single frame, {s['share_estimated'][0]:.0%} of frames) "
+                            f"| {window} | {_fmt(v['x_m'])} | {_fmt(v['y_m'])} | "
+                            f"{_fmt(v['z_m'])} | | | | | |")
+    return f"""
+## Navigation filter (IMU + craters + altimeter)
+
+An error-state Kalman filter (15 states) on the {cfg.imu.grade}-grade IMU at
+{cfg.imu.rate_hz:g} Hz; crater updates `{n.crater_updates}`, altimeter
+{'on' if n.altimeter_updates else 'off'}, gate {n.gate_probability}, crater outage {outage},
+initialised `{n.init}`. RMSE over the records of each window (every frame and the decimated IMU
+grid); `inside 3 sigma` is the share of records whose position error is inside +-3 sigma on all
+three axes (~99.2 % for an honest Gaussian filter); the NEES of each 3-dof block is 3 when honest.
+The single-frame methods' RMSE over their `ok` frames is listed below each window for comparison.
+
+![navigation errors](fig_navigation.png)
+
+{head}
+{chr(10).join(body)}
+"""
 
 
 def write_sweep_report(path: Path, table_md: str, figures: dict[str, str], facts: dict[str, Any]
@@ -395,3 +470,103 @@ def fig_caps(errors: pl.DataFrame, method: str, caps: list[str], t0: float, t1: 
         ax.set_ylabel(f"error {q.axis_label}")
         ax.grid(alpha=0.3)
     _finish_stack(fig, subplots, title, path)
+
+
+def _compare_panels(series: pl.DataFrame, column: str, ylabel: str, path: Path, title: str,
+                    log: bool = False, dashed: str | None = None) -> None:
+    """One column of every run against time (top) and altitude (bottom, km); `dashed` a second
+    column drawn dashed in the same colour."""
+    fig = Figure(figsize=(9, 7.5))
+    top, bottom = fig.subplots(2, 1)
+    colours = matplotlib.colormaps["tab10"]
+    for i, (run,) in enumerate(series["run"].unique(maintain_order=True).to_frame().iter_rows()):
+        s = series.filter(pl.col("run") == run)
+        for ax, x in ((top, s["t_s"].to_numpy()), (bottom, s["altitude_km"].to_numpy())):
+            ax.plot(x, s[column].to_numpy(), color=colours(i), lw=0.9, label=run)
+            if dashed is not None:
+                ax.plot(x, s[dashed].to_numpy(), color=colours(i), lw=0.9, ls="--")
+    for ax, xlabel in ((top, "time since apoapsis (s)"), (bottom, "altitude (km)")):
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        if log:
+            ax.set_yscale("log")
+    bottom.invert_xaxis()  # the descent reads left to right
+    top.legend(loc="upper left", fontsize=8, ncol=2)
+    top.set_title(title)
+    _save(fig, path)
+
+
+def fig_centre_bias(bias: pl.DataFrame, path: Path) -> None:
+    """Median and 95th-percentile ellipse-centre bias (px) against the emission angle (deg)."""
+    fig = Figure(figsize=(8, 4.2))
+    ax = fig.subplots()
+    colours = matplotlib.colormaps["tab10"]
+    for i, run in enumerate(bias["run"].unique(maintain_order=True).to_list()):
+        b = bias.filter(pl.col("run") == run)
+        mid = 0.5 * (b["emission_lo_deg"] + b["emission_hi_deg"]).to_numpy()
+        ax.plot(mid, b["median_bias_px"].to_numpy(), "o-", color=colours(i), label=f"{run} median")
+        ax.plot(mid, b["p95_bias_px"].to_numpy(), "^--", color=colours(i), label=f"{run} 95 %")
+    ax.axhline(0.0, color="black", lw=0.5)
+    ax.set_xlabel("emission angle at the crater (deg)")
+    ax.set_ylabel("ellipse centre - true centre (px)")
+    ax.set_title("Ellipse-centre bias of the imaged rims (0 at nadir)")
+    ax.legend(fontsize=8)
+    _save(fig, path)
+
+
+def write_compare_report(folder: Path, series: pl.DataFrame, windows: pl.DataFrame,
+                         bias: pl.DataFrame | None) -> Path:
+    """report.md of a comparison of runs, with its figures, in `folder`."""
+    runs = series["run"].unique(maintain_order=True).to_list()
+    _compare_panels(series, "n_visible", "visible craters (count)", folder / "fig_visible.png",
+                    "Visible craters per frame")
+    _compare_panels(series, "n_used", "used craters (count)", folder / "fig_used.png",
+                    "Craters used per frame")
+    _compare_panels(series, "joint_error_m", "|position error| (m)", folder / "fig_errors.png",
+                    "Position error: joint ML (solid), navigation filter (dashed)", log=True,
+                    dashed="filter_error_m")
+    head = ("| run | window | joint fixes | joint X / Y / Z (m) | filter X / Y / Z (m) | "
+            "filter NEES pos (3) |\n|---|---|---|---|---|---|")
+    rows = [f"| {r['run']} | {r['window']} | {_pct(r['share_estimated'])} | "
+            f"{_fmt(r['joint_x_m'])} / {_fmt(r['joint_y_m'])} / {_fmt(r['joint_z_m'])} | "
+            f"{_fmt(r['filter_x_m'])} / {_fmt(r['filter_y_m'])} / {_fmt(r['filter_z_m'])} | "
+            f"{_fmt(r['mean_nees_pos'])} |" for r in windows.iter_rows(named=True)]
+    text = f"""# Comparison of runs: {', '.join(f'`{r}`' for r in runs)}
+
+Crater counts and position errors against time and altitude (the joint maximum-likelihood fix of
+each frame, solid; the navigation filter, dashed). RMSE per window over the frames with a fix.
+
+![visible craters](fig_visible.png)
+
+![used craters](fig_used.png)
+
+![position errors](fig_errors.png)
+
+{head}
+{chr(10).join(rows)}
+"""
+    if bias is not None and bias.height:
+        fig_centre_bias(bias, folder / "fig_centre_bias.png")
+        bias_rows = [f"| {r['run']} | {r['emission_lo_deg']:.0f}-{r['emission_hi_deg']:.0f} | "
+                     f"{r['craters']:,} | {r['median_bias_px']:.3f} | {r['p95_bias_px']:.3f} | "
+                     f"{r['median_bias_urad']:.1f} |" for r in bias.iter_rows(named=True)]
+        text += f"""
+## Ellipse-centre bias (physical sensor)
+
+The centre of a rim's image ellipse is not the image of the crater's centre: the near rim is
+magnified more than the far one. The bias grows with the emission angle (0 at nadir); as an angle
+it is what a bearing from the ellipse centre is off by (`bearing = "corrected"` removes it).
+
+![centre bias](fig_centre_bias.png)
+
+| run | emission (deg) | craters | median bias (px) | 95th pct (px) | median bias (urad) |
+|---|---|---|---|---|---|
+{chr(10).join(bias_rows)}
+"""
+    path = folder / "report.md"
+    path.write_text(text)
+    return path
+
+
+def _pct(x: float | None) -> str:
+    return "" if x is None or not np.isfinite(x) else f"{x:.0%}"

@@ -72,7 +72,8 @@ def chi2_mean_bounds(dof: int) -> tuple[float, float]:
 
 def test_every_stage_ran_and_the_run_says_where_it_wrote(run_dir):
     manifest = json.loads((run_dir / "manifest.json").read_text())
-    assert set(manifest["stages"]) == {"ingest", "trajectory", "detect", "estimate", "score"}
+    assert set(manifest["stages"]) == {"ingest", "trajectory", "imu", "detect", "estimate",
+                                       "navigate", "score"}
     for name, entry in manifest["stages"].items():
         assert (run_dir / name).is_symlink() and entry["stage"] == name
         assert json.loads((run_dir / name / "stage.json").read_text()) == entry

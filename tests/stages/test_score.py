@@ -142,7 +142,7 @@ def test_scores_have_one_row_per_method_and_frame(runs):
     entry = r.store.entry("score")
     assert set(entry["outputs"]) >= {"scores.parquet", "summary.parquet", "scoring.rrd",
                                      "layout.rbl", "report.md", "by_craters_used.parquet"}
-    assert set(entry["tables"]) == {"scores", "summary", "by_craters_used"}
+    assert set(entry["tables"]) == {"scores", "summary", "by_craters_used", "navigation_summary"}
 
 
 @pytest.mark.parametrize("name", ["clean", "false"])
@@ -445,7 +445,13 @@ def test_layout_is_a_blueprint_with_the_error_and_consistency_views(runs):
     expected = {f"/errors/position/{a}" for a in "xyz"} | {
         f"/errors/attitude/{a}" for a in ("phi", "theta", "psi")} | {
         "/consistency", "/world", "/world/spacecraft/camera", "/world/spacecraft/chase",
-        "/counts", "/trajectory", "/estimation"}
+        "/counts", "/trajectory", "/estimation", "/navigation/nees", "/navigation/nis_per_dof",
+        "/navigation/nees_total", "/navigation/position_error_norm_m",
+        "/navigation/bias/gyro_deg_h", "/navigation/bias/accel_milli_g", "/imu/body_rate_deg_s",
+        "/altimeter/slant_range_km", "/imu/true_bias/gyro_deg_h", "/imu/true_bias/accel_milli_g",
+        "/navigation/updates/craters", "/navigation/updates", "/navigation/status"} | {
+        f"/navigation/errors/{q}/{a}" for q in ("position_m", "velocity_m_s", "attitude_deg")
+        for a in "xyz"}
     assert origins == expected
 
 
@@ -456,7 +462,7 @@ def test_score_reruns_when_scoring_changes_and_is_skipped_otherwise(workdir, cat
     def ran(**sections) -> list[str]:
         return run_stages(config("r", catalogue_db, **sections), RunStore("r").root)
 
-    assert ran() == ["ingest", "trajectory", "detect", "estimate", "score"]
+    assert ran() == ["ingest", "trajectory", "imu", "detect", "estimate", "navigate", "score"]
     scores = Path("runs/r/score/scores.parquet")
     inode = scores.stat().st_ino
     assert ran() == []
@@ -466,7 +472,8 @@ def test_score_reruns_when_scoring_changes_and_is_skipped_otherwise(workdir, cat
     summary = pl.read_parquet("runs/r/score/summary.parquet")
     assert set(summary["window"]) == {*WINDOWS, "last 60 s"}
     assert ran(scoring=changed) == []
-    assert ran(scoring=changed, estimation={"max_iterations": 30}) == ["estimate", "score"]
+    assert ran(scoring=changed, estimation={"max_iterations": 30}) == ["estimate", "navigate",
+                                                                       "score"]
     assert run_stages(config("r", catalogue_db, scoring=changed,
                              estimation={"max_iterations": 30}), RunStore("r").root,
                       force=["score"]) == ["score"]

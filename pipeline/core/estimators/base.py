@@ -13,6 +13,8 @@ from typing import ClassVar
 
 import numpy as np
 
+from pipeline.core.measurement import Sigma
+
 # Largest accepted condition number of a normal matrix after Jacobi (unit-diagonal) scaling. For
 # the unit line-of-sight Gram matrix of the range fit, 1e10 means a weakest direction 1e5 times
 # worse determined than the best: with 10 m ranges and n craters the position sigma there exceeds
@@ -43,11 +45,12 @@ class PoseEstimate:
 @dataclass(frozen=True)
 class EstimatorOptions:
     """What every estimator needs: the measurement noise it assumes (Eq. 10-11: `sigma_bearing`
-    ~rad per tangent axis, `sigma_range_m` m) and its Gauss-Newton stop (`step_tol_m` m, at most
-    `max_iterations` steps)."""
+    ~rad per tangent axis, `sigma_range_m` m; each a number, or an (n,) array with one value per
+    row of the frame's prepared inputs, `measurement.Sigma`) and its Gauss-Newton stop
+    (`step_tol_m` m, at most `max_iterations` steps)."""
 
-    sigma_bearing: float
-    sigma_range_m: float
+    sigma_bearing: Sigma
+    sigma_range_m: Sigma
     step_tol_m: float = 1e-9
     max_iterations: int = 20
 
@@ -68,8 +71,9 @@ class Estimator(ABC):
     def fit(self, c_mci_m: np.ndarray, u_body: np.ndarray, rho_m: np.ndarray, use: np.ndarray,
             r_prior_mci_m: np.ndarray | None) -> PoseEstimate:
         """The pose from the rows `use` (n,) bool of prepared inputs (`prepare`): craters (n, 3)
-        (MCI, m), unit bearings (n, 3) (body), ranges (n,) (m); `r_prior_mci_m` a warm start
-        (the previous estimate) or None. Never raises on bad data: a status instead."""
+        (MCI, m), unit bearings (n, 3) (body), ranges (n,) (m; NaN: that crater has a bearing
+        and no range); `r_prior_mci_m` a warm start (the previous estimate) or None. Never
+        raises on bad data: a status instead."""
 
 
 ESTIMATORS: dict[str, type[Estimator]] = {}
@@ -77,14 +81,15 @@ ESTIMATORS: dict[str, type[Estimator]] = {}
 
 def prepare(c_mci_m: np.ndarray, u_body: np.ndarray, rho_m: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Float arrays, bearings renormalised, and the mask of usable rows: finite c, u and rho, a
-    non-zero bearing and a positive range."""
+    """Float arrays, bearings renormalised, and the mask of usable rows: finite c and u, a
+    non-zero bearing, and a range that is positive and finite or NaN (no range: the crater
+    counts by its bearing alone). An infinite or non-positive range is bad data: row left out."""
     c = np.asarray(c_mci_m, dtype=float).reshape(-1, 3)
     u = np.asarray(u_body, dtype=float).reshape(-1, 3)
     rho = np.asarray(rho_m, dtype=float).reshape(-1)
     norm = np.sqrt(np.einsum("ij,ij->i", u, u))
-    valid = np.isfinite(c).all(axis=1) & np.isfinite(norm) & (norm > 0) & np.isfinite(rho) \
-        & (rho > 0)
+    valid = np.isfinite(c).all(axis=1) & np.isfinite(norm) & (norm > 0) \
+        & ((np.isfinite(rho) & (rho > 0)) | np.isnan(rho))
     with np.errstate(invalid="ignore", divide="ignore"):
         u = u / norm[:, None]
     return c, u, rho, valid

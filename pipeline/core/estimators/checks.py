@@ -15,10 +15,12 @@ In order, on the rows the estimate used, at the estimated pose:
    surface_margin_m. The ranges alone have a mirror solution across the craters' plane, below
    the surface; with bearings negated it is also consistent with the bearings (a reflection
    times -I is a rotation), so only these tests catch it.
-3. `inconsistent`: the normalised residuals (`measurement`: 1 range and 2 bearing components
-   per crater, 3N in all) fail a chi-square test at `consistency_probability` (`_consistent`):
-   their linearised minimum against 3N - 6 dof (6 pose parameters fitted; N >= 3), and the
-   distance of the estimate from that minimum against its own covariance (6 dof).
+3. `inconsistent`: the normalised residuals (`measurement`: 2 bearing components per crater and
+   1 per range, M = 2N + N_ranges in all; 3N with every range) fail a chi-square test at
+   `consistency_probability` (`_consistent`): their linearised minimum against M - 6 dof (6 pose
+   parameters fitted; none to test when M = 6, 3 craters with bearings only), and the distance
+   of the estimate from that minimum against its own covariance (6 dof).
+The noise is one number or one value per crater (`measurement.Sigma`) for the rows given.
 """
 
 from __future__ import annotations
@@ -35,7 +37,13 @@ from pipeline.core.estimators.base import (
     failed,
     inverse_if_well_conditioned,
 )
-from pipeline.core.measurement import predict, whitened_system
+from pipeline.core.measurement import (
+    Sigma,
+    measurement_count,
+    per_crater,
+    predict,
+    whitened_system,
+)
 from pipeline.core.status import Status
 
 
@@ -66,24 +74,28 @@ def _chi2_threshold(probability: float, dof: int) -> float:
 
 
 def check_estimate(est: PoseEstimate, c_mci_m: np.ndarray, u_body: np.ndarray, rho_m: np.ndarray,
-                   *, sigma_bearing: float, sigma_range_m: float, options: CheckOptions
+                   *, sigma_bearing: Sigma, sigma_range_m: Sigma, options: CheckOptions
                    ) -> PoseEstimate:
     """`est` unchanged when it is not `ok` or passes every check; otherwise a failed estimate
     (NaN pose and covariances, same `inliers` and `iterations`) with the first failing status.
     Inputs as the estimator saw them: craters (n, 3) (MCI, m), unit bearings (n, 3) (body) and
-    ranges (n,) (m); only the rows `est.inliers` are used."""
+    ranges (n,) (m, NaN: no range), noise a number or (n,) per row; only the rows `est.inliers`
+    are used."""
     if est.status != Status.OK:
         return est
     use = est.inliers
     c, u, rho = c_mci_m[use], u_body[use], rho_m[use]
     r, q = est.r_mci_m, est.q_mci_from_body
     with np.errstate(all="ignore"):
-        e, jac, _ = whitened_system(r, q, c, u, rho, sigma_bearing=sigma_bearing,
-                                    sigma_range_m=sigma_range_m)
+        e, jac, rho_pred = whitened_system(r, q, c, u, rho,
+                                           sigma_bearing=per_crater(sigma_bearing, use),
+                                           sigma_range_m=per_crater(sigma_range_m, use))
         rows = jac.reshape(-1, 6)
         info = rows.T @ rows
         bound = inverse_if_well_conditioned(info, options.max_condition)
-        if bound is None or not _linear(bound, rho, options.max_relative_sigma):
+        missing = np.isnan(rho)
+        nearest = np.where(missing, rho_pred, rho) if missing.any() else rho
+        if bound is None or not _linear(bound, nearest, options.max_relative_sigma):
             return failed(Status.ILL_CONDITIONED, use, est.iterations)
         u_pred, _ = predict(r, q, c)
         radius = options.moon_radius_m
@@ -91,7 +103,8 @@ def check_estimate(est: PoseEstimate, c_mci_m: np.ndarray, u_body: np.ndarray, r
         if not (ahead and np.all(np.einsum("ij,ij->i", u_pred, u) > 0.0)
                 and (radius is None or float(r @ r) >= (radius - options.surface_margin_m)**2)):
             return failed(Status.BELOW_SURFACE, use, est.iterations)
-        if not _consistent(e, rows, info, est.cov, options.consistency_probability):
+        if not _consistent(e, rows, info, est.cov, options.consistency_probability,
+                           measurement_count(rho)):
             return failed(Status.INCONSISTENT, use, est.iterations)
     return est
 
@@ -106,12 +119,13 @@ def _linear(bound: np.ndarray, rho_m: np.ndarray, max_relative_sigma: float) -> 
 
 
 def _consistent(e: np.ndarray, jac_rows: np.ndarray, info: np.ndarray, cov: np.ndarray,
-                probability: float) -> bool:
-    """The residual tests at a pose estimate: whitened residuals e (N, 4), Jacobian J as rows
-    (4N, 6), information I = J^T J (6, 6), the estimate's covariance (6, 6).
+                probability: float, measurements: int) -> bool:
+    """The residual tests at a pose estimate: whitened residuals e (N, 4) (zero for a missing
+    range), Jacobian J as rows (4N, 6), information I = J^T J (6, 6), the estimate's covariance
+    (6, 6), and the number M of scalar measurements present (`measurement_count`).
 
     The linearised best pose is one Gauss-Newton step delta = I^-1 sum J^T e away. Its cost
-    e^T e - g^T delta (g = sum J^T e) is chi-square with 3N - 6 dof (the measurements fit some
+    e^T e - g^T delta (g = sum J^T e) is chi-square with M - 6 dof (the measurements fit some
     pose); and delta^T cov^-1 delta is at most chi-square with 6 dof (the estimate is as close to
     that pose as its covariance claims: cov(x_est - x_ML) = cov - I^-1 for an efficient ML). An
     ML estimate (joint) has delta ~ 0; the paper's method is not one, so its own cost can exceed
@@ -123,5 +137,6 @@ def _consistent(e: np.ndarray, jac_rows: np.ndarray, info: np.ndarray, cov: np.n
     except np.linalg.LinAlgError:
         return False
     cost = float(np.sum(e * e)) - float(g @ delta)
-    return (cost <= _chi2_threshold(probability, 3 * e.shape[0] - 6)
+    dof = measurements - 6  # none when the measurements determine the pose exactly
+    return ((dof <= 0 or cost <= _chi2_threshold(probability, dof))
             and shift <= _chi2_threshold(probability, 6))

@@ -12,15 +12,17 @@ import numpy as np
 from pipeline.core.estimators.base import Estimator, PoseEstimate, failed
 from pipeline.core.estimators.position import closed_form_position, gauss_newton_position
 from pipeline.core.estimators.quest import quest, quest_position_sensitivity
-from pipeline.core.measurement import line_of_sight
+from pipeline.core.measurement import line_of_sight, per_crater
 from pipeline.core.status import Status
 
 
 @dataclass(frozen=True)
 class PaperEstimator(Estimator):
     """Position: range Gauss-Newton from the prior (the previous successful estimate) or, when
-    None or not finite (a failed frame's NaN), from `closed_form_position`. Attitude: QUEST with
-    r_ref_j = unit(c_j - r_est) and equal weights 1/sigma_bearing^2. `cov`: the Gauss-Newton
+    None or not finite (a failed frame's NaN), from `closed_form_position`, on the craters with a
+    range (at least 3, else `needs_ranges`; weights 1/sigma_range^2 when they differ). Attitude:
+    QUEST on every used crater's bearing with r_ref_j = unit(c_j - r_est) and weights
+    1/sigma_bearing^2 (equal for one number, per crater for an array). `cov`: the Gauss-Newton
     position block; attitude block QUEST's covariance plus G P_rr G^T, with the cross terms
     G P_rr, where G = d dtheta / d r (`quest_position_sensitivity`): the attitude error the
     position error induces through the references (bearing and range noise are independent).
@@ -33,17 +35,23 @@ class PaperEstimator(Estimator):
         o = self.options
         if use.sum() < 3:
             return failed(Status.TOO_FEW_CRATERS, use, 0)
+        ranged = use & ~np.isnan(rho_m)
+        if ranged.sum() < 3:
+            return failed(Status.NEEDS_RANGES, use, 0)
         cs, us, rs = c_mci_m[use], u_body[use], rho_m[use]
+        cr, rr = c_mci_m[ranged], rho_m[ranged]
         warm = r_prior_mci_m is not None and bool(np.all(np.isfinite(r_prior_mci_m)))
-        r0 = r_prior_mci_m if warm else closed_form_position(cs, rs, us)
+        r0 = r_prior_mci_m if warm else closed_form_position(cr, rr, u_body[ranged])
         if r0 is None:
             return failed(Status.DEGENERATE, use, 0)
-        x, cov_x, its, status = gauss_newton_position(cs, rs, r0, o.step_tol_m, o.max_iterations,
-                                                      sigma_range_m=o.sigma_range_m)
+        x, cov_x, its, status = gauss_newton_position(
+            cr, rr, r0, o.step_tol_m, o.max_iterations,
+            sigma_range_m=per_crater(o.sigma_range_m, ranged))
         if status != Status.OK:
             return failed(status, use, its)
         ref, _ = line_of_sight(x, cs)
-        weights = np.full(rs.size, o.sigma_bearing**-2)
+        sigma_b = per_crater(o.sigma_bearing, use)
+        weights = np.full(rs.size, sigma_b**-2) if np.ndim(sigma_b) == 0 else sigma_b**-2.0
         q, att_cov = quest(us, ref, weights)
         if not np.all(np.isfinite(att_cov)):
             return failed(Status.DEGENERATE, use, its)

@@ -13,7 +13,7 @@ from pipeline.core.estimators.base import (
     ROUNDING_FACTOR,
     inverse_if_well_conditioned,
 )
-from pipeline.core.measurement import line_of_sight
+from pipeline.core.measurement import Sigma, line_of_sight
 from pipeline.core.status import Status
 
 
@@ -74,7 +74,7 @@ def _sym3_inverse(h: np.ndarray) -> np.ndarray | None:
 
 
 def gauss_newton_position(c_mci_m: np.ndarray, rho_m: np.ndarray, r0_mci_m: np.ndarray,
-                          step_tol_m: float, max_iterations: int, *, sigma_range_m: float = 1.0
+                          step_tol_m: float, max_iterations: int, *, sigma_range_m: Sigma = 1.0
                           ) -> tuple[np.ndarray, np.ndarray, int, str]:
     """Gauss-Newton on the range residuals f_j = h_rho,j(r) - rho_j (paper Eq. 12-14, ERRATA 3).
 
@@ -82,11 +82,15 @@ def gauss_newton_position(c_mci_m: np.ndarray, rho_m: np.ndarray, r0_mci_m: np.n
     sigma 1 gives (J^T J)^-1), the number of steps and a status: `ok` once a step is at most
     `step_tol_m` (m) or its rounding floor (ROUNDING_FACTOR), `not_converged` at the cap,
     `degenerate` for an ill-conditioned J^T J (MAX_CONDITION). Position and covariance are NaN
-    unless ok.
+    unless ok. With `sigma_range_m` an (n,) array (one per crater) the fit is weighted: residual j
+    by 1 / sigma_j^2, covariance (J^T W J)^-1.
     """
     c = np.asarray(c_mci_m, dtype=float)
     rho = np.asarray(rho_m, dtype=float)
     x = np.array(r0_mci_m, dtype=float)
+    if np.ndim(sigma_range_m) != 0:
+        return _weighted_gauss_newton(c, rho, x, step_tol_m, max_iterations,
+                                      np.asarray(sigma_range_m, dtype=float))
     nan_x, nan_cov = np.full(3, np.nan), np.full((3, 3), np.nan)
     for k in range(1, max_iterations + 1):
         w, rng_m = line_of_sight(x, c)  # the range Jacobian is -w
@@ -105,4 +109,34 @@ def gauss_newton_position(c_mci_m: np.ndarray, rho_m: np.ndarray, r0_mci_m: np.n
             if h_inv is None:
                 return nan_x, nan_cov, k, Status.DEGENERATE.value
             return x, sigma_range_m**2 * h_inv, k, Status.OK.value
+    return nan_x, nan_cov, max_iterations, Status.NOT_CONVERGED.value
+
+
+def _weighted_gauss_newton(c: np.ndarray, rho: np.ndarray, x: np.ndarray, step_tol_m: float,
+                           max_iterations: int, sigma_m: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, int, str]:
+    """`gauss_newton_position` with one range sigma per crater (n,) (m): the same iteration on
+    the residuals scaled by s_j = min(sigma) / sigma_j (so the best range keeps weight 1 and the
+    rounding floor its meaning), covariance min(sigma)^2 (J^T S^2 J)^-1."""
+    nan_x, nan_cov = np.full(3, np.nan), np.full((3, 3), np.nan)
+    scale = float(sigma_m.min())
+    s = scale / sigma_m
+    for k in range(1, max_iterations + 1):
+        w, rng_m = line_of_sight(x, c)
+        ws = w * (s * s)[:, None]
+        h = w.T @ ws
+        h_inv = _sym3_inverse(h)
+        if h_inv is None:
+            return nan_x, nan_cov, k, Status.DEGENERATE.value
+        step = h_inv @ ((rng_m - rho) @ ws)
+        x += step
+        step_m = math.sqrt(float(step @ step))
+        if not math.isfinite(step_m):
+            return nan_x, nan_cov, k, Status.DEGENERATE.value
+        floor = ROUNDING_FACTOR * EPS * float((rng_m * s).max()) * math.sqrt(h_inv.trace())
+        if step_m <= max(step_tol_m, floor):
+            h_inv = inverse_if_well_conditioned(h)
+            if h_inv is None:
+                return nan_x, nan_cov, k, Status.DEGENERATE.value
+            return x, scale**2 * h_inv, k, Status.OK.value
     return nan_x, nan_cov, max_iterations, Status.NOT_CONVERGED.value

@@ -1,6 +1,8 @@
-"""Robust estimation against false matches: RANSAC over minimal 3-crater absolute-orientation
-poses scored by MSAC, then the method refitted until the craters passing a chi-square gate on
-their normalised residuals (`measurement`, 3 dof per crater) are stable."""
+"""Robust estimation against false matches: RANSAC over minimal 3-crater poses (absolute
+orientation when every crater has a range, else P3P on the bearings, `bearings.p3p`) scored by
+MSAC, then the method refitted until the craters passing a chi-square gate on their normalised
+residuals (`measurement`: 3 dof per crater with a range, 2 without) are stable. Noise one number
+or one value per row of the frame (`measurement.Sigma`)."""
 
 from __future__ import annotations
 
@@ -12,7 +14,8 @@ import numpy as np
 from scipy.stats import chi2
 
 from pipeline.core.estimators.base import Estimator, PoseEstimate, failed
-from pipeline.core.measurement import squared_normalised_residuals
+from pipeline.core.estimators.bearings import absolute_orientation, crater_costs, p3p
+from pipeline.core.measurement import Sigma, per_crater, squared_normalised_residuals
 from pipeline.core.status import Status
 
 # RANSAC's consensus gate is the final chi-square gate widened by this factor in sigma: a 3-crater
@@ -24,7 +27,8 @@ MAX_GATE_ITERATIONS = 10  # robust refit-and-gate passes
 
 @dataclass(frozen=True)
 class RobustOptions:
-    """RANSAC over minimal 3-crater poses, then refit and chi-square gate (3 dof per crater)."""
+    """RANSAC over minimal 3-crater poses, then refit and chi-square gate (3 dof per crater, 2
+    for a crater without a range)."""
 
     gate_probability: float  # chi-square gate on each crater's normalised residual
     max_hypotheses: int  # cap on the RANSAC hypotheses
@@ -32,9 +36,19 @@ class RobustOptions:
 
 
 @cache
-def _chi2_gate(probability: float) -> float:
-    """Chi-square quantile with 3 dof (1 range + 2 bearing tangent) at `probability`."""
-    return float(chi2.ppf(probability, 3))
+def _chi2_gate(probability: float, dof: int = 3) -> float:
+    """Chi-square quantile with `dof` (1 range + 2 bearing tangent; 2 without a range) at
+    `probability`."""
+    return float(chi2.ppf(probability, dof))
+
+
+def _gates(probability: float, rho_m: np.ndarray) -> float | np.ndarray:
+    """The chi-square gate of each crater with ranges `rho_m` (n,) (NaN: none): one number when
+    every crater has a range, else (n,)."""
+    missing = np.isnan(rho_m)
+    if not missing.any():
+        return _chi2_gate(probability)
+    return np.where(missing, _chi2_gate(probability, 2), _chi2_gate(probability))
 
 
 def _sample_triples(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
@@ -49,21 +63,6 @@ def _sample_triples(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
     return np.stack([i, j, m], axis=1)
 
 
-def absolute_orientation(p_body_m: np.ndarray, c_mci_m: np.ndarray
-                         ) -> tuple[np.ndarray, np.ndarray]:
-    """Batched least-squares c_j = R p_j + r (Kabsch): (..., m, 3) body-frame relative vectors
-    p_j = rho_j u_j and MCI points -> dcm_mci_from_body (..., 3, 3) and r_mci_m (..., 3)."""
-    p_mean = p_body_m.mean(axis=-2)
-    c_mean = c_mci_m.mean(axis=-2)
-    a = np.einsum("...ja,...jb->...ab", p_body_m - p_mean[..., None, :],
-                  c_mci_m - c_mean[..., None, :])
-    uu, _, vt = np.linalg.svd(a)
-    v = np.swapaxes(vt, -1, -2)
-    v[..., :, 2] *= np.sign(np.linalg.det(v @ np.swapaxes(uu, -1, -2)))[..., None]
-    dcm = v @ np.swapaxes(uu, -1, -2)
-    return dcm, c_mean - np.einsum("...ab,...b->...a", dcm, p_mean)
-
-
 def _hypotheses_needed(inlier_share: float, opts: RobustOptions) -> int:
     """Hypotheses for `confidence` of one all-inlier triple at this inlier share (capped)."""
     miss = 1.0 - inlier_share**3
@@ -75,26 +74,36 @@ def _hypotheses_needed(inlier_share: float, opts: RobustOptions) -> int:
 
 
 def _ransac(c: np.ndarray, u: np.ndarray, rho: np.ndarray, valid: np.ndarray,
-            sigma_bearing: float, sigma_range_m: float, opts: RobustOptions,
-            rng: np.random.Generator, loose_gate: float) -> tuple[np.ndarray, np.ndarray]:
+            sigma_bearing: Sigma, sigma_range_m: Sigma, opts: RobustOptions,
+            rng: np.random.Generator, loose_gate: float | np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:
     """Consensus mask (n,) and position (3,) of the best minimal-set hypothesis (MSAC cost with
-    the loose gate); adaptive hypothesis count from the best inlier share and `confidence`."""
+    the loose gate, one number or one per valid row); adaptive hypothesis count from the best
+    inlier share and `confidence`. Noise: a number or one value per valid row."""
     idx = np.flatnonzero(valid)
     cv = c[idx]
-    p = u[idx] * rho[idx, None]  # body-frame relative vectors R^T (c_j - r)
-    tangent_var = (rho[idx] * sigma_bearing) ** 2
+    bearings_only = bool(np.isnan(rho[idx]).any())
+    if not bearings_only:
+        p = u[idx] * rho[idx, None]  # body-frame relative vectors R^T (c_j - r)
+        tangent_var = (rho[idx] * sigma_bearing) ** 2
     needed, drawn = opts.max_hypotheses, 0
     # no hypothesis with a finite cost: an empty consensus (too_few_craters)
     best_cost, best_s, best_x = np.inf, np.full(idx.size, np.inf), np.full(3, np.nan)
     while drawn < min(needed, opts.max_hypotheses):
         k = min(RANSAC_BATCH, opts.max_hypotheses - drawn)
         sample = _sample_triples(rng, idx.size, k)
-        dcm, x = absolute_orientation(p[sample], cv[sample])
-        los = np.einsum("kab,mb->kma", dcm, u[idx])  # measured lines of sight, MCI
-        resid = cv[None] - x[:, None, :] - los * rho[idx, None]  # (k, m, 3) metres
-        along2 = np.einsum("kma,kma->km", resid, los) ** 2
-        s = along2 / sigma_range_m**2 + (np.einsum("kma,kma->km", resid, resid) - along2) \
-            / tangent_var
+        if bearings_only:  # up to 4 P3P poses per triple, scored on bearings and any ranges
+            dcm4, x4 = p3p(u[idx][sample], cv[sample])
+            x = x4.reshape(-1, 3)
+            s = crater_costs(x, dcm4.reshape(-1, 3, 3), cv, u[idx], rho[idx], sigma_bearing,
+                             sigma_range_m)
+        else:
+            dcm, x = absolute_orientation(p[sample], cv[sample])
+            los = np.einsum("kab,mb->kma", dcm, u[idx])  # measured lines of sight, MCI
+            resid = cv[None] - x[:, None, :] - los * rho[idx, None]  # (k, m, 3) metres
+            along2 = np.einsum("kma,kma->km", resid, los) ** 2
+            s = along2 / sigma_range_m**2 + (np.einsum("kma,kma->km", resid, resid) - along2) \
+                / tangent_var
         cost = np.minimum(s, loose_gate).sum(axis=1)
         j = int(np.argmin(cost))
         if cost[j] < best_cost:
@@ -110,15 +119,17 @@ def robust_fit(estimator: Estimator, c_mci_m: np.ndarray, u_body: np.ndarray, rh
                valid: np.ndarray, opts: RobustOptions, rng: np.random.Generator) -> PoseEstimate:
     """`estimator` on the rows of `valid` with false matches removed: RANSAC consensus (loose
     gate RANSAC_LOOSE_FACTOR), then fits warm-started at the best hypothesis and refitted until
-    the set of craters passing the chi-square gate (`gate_probability`, 3 dof) under the fit is
-    stable (at most MAX_GATE_ITERATIONS fits; the estimate returned is the last fit, its
-    `inliers` the rows it used). Random draws come from `rng` only."""
+    the set of craters passing the chi-square gate (`gate_probability`, 3 dof, 2 without a
+    range) under the fit is stable (at most MAX_GATE_ITERATIONS fits; the estimate returned is
+    the last fit, its `inliers` the rows it used). Random draws come from `rng` only. The
+    estimator's noise is a number or one value per row of the frame."""
     c, u, rho = c_mci_m, u_body, rho_m
     if valid.sum() < 3:
         return failed(Status.TOO_FEW_CRATERS, valid, 0)
     o = estimator.options
-    gate = _chi2_gate(opts.gate_probability)
-    use, prior = _ransac(c, u, rho, valid, o.sigma_bearing, o.sigma_range_m, opts, rng,
+    gate = _gates(opts.gate_probability, rho[valid])
+    sigma_b, sigma_r = per_crater(o.sigma_bearing, valid), per_crater(o.sigma_range_m, valid)
+    use, prior = _ransac(c, u, rho, valid, sigma_b, sigma_r, opts, rng,
                          gate * RANSAC_LOOSE_FACTOR**2)
     est = failed(Status.TOO_FEW_CRATERS, use, 0)
     for _ in range(MAX_GATE_ITERATIONS):
@@ -127,11 +138,10 @@ def robust_fit(estimator: Estimator, c_mci_m: np.ndarray, u_body: np.ndarray, rh
         est = estimator.fit(c, u, rho, use, prior)
         if est.status != Status.OK:
             return est
-        s = np.full(valid.size, np.inf)
-        s[valid] = squared_normalised_residuals(
+        kept = np.zeros(valid.size, dtype=bool)
+        kept[valid] = squared_normalised_residuals(
             est.r_mci_m, est.q_mci_from_body, c[valid], u[valid], rho[valid],
-            sigma_bearing=o.sigma_bearing, sigma_range_m=o.sigma_range_m)
-        kept = s <= gate
+            sigma_bearing=sigma_b, sigma_range_m=sigma_r) <= gate
         if np.array_equal(kept, use):
             return est
         use, prior = kept, est.r_mci_m

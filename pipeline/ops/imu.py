@@ -1,0 +1,124 @@
+"""IMU and laser-altimeter operations: the sensors the navigation filter fuses, simulated from the
+true descent (the truth side; the filter never sees these tables' truth columns).
+
+The descent is propagated again from the trajectory config (deterministic: the same states as the
+trajectory stage, at any time), so the IMU samples at its own rate from the dense solution rather
+than from the frames. The sensors cover the frames' span (navigation starts at the first frame).
+Three tables:
+- imu: per sample k, [k dt, (k + 1) dt): measured delta-theta (rad) and delta-v (m/s), body axes,
+  for the samples that overlap [first frame, last frame];
+- imu_truth: at the record times (the decimated grid and every frame): true state, true biases;
+- altimeter: per sample time, the measured slant range (NaN without a return) and the truth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+
+from pipeline.config import AltimeterConfig, ImuConfig, TrajectoryConfig
+from pipeline.core.camera import ray_sphere_distance
+from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.navigation import imu
+from pipeline.core.orbit import Descent
+from pipeline.core.rotations import dcm_from_q
+from pipeline.io.tables import quat_columns, xyz_columns
+from pipeline.ops.trajectory import propagate
+
+_IMU_TAG = 0x1A1  # the IMU's random streams within the run seed
+_ALTIMETER_TAG = 0xA17
+BORESIGHT_BODY = np.array([0.0, 0.0, 1.0])
+
+
+def stream(seed: int, tag: int) -> np.random.Generator:
+    """The run's random stream for one purpose (seed, tag)."""
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=(tag,))))
+
+
+@dataclass(frozen=True)
+class Sensors:
+    """The simulated sensors' tables and facts."""
+
+    imu: pl.DataFrame
+    truth: pl.DataFrame
+    altimeter: pl.DataFrame
+    facts: dict
+
+
+def record_times(t_impact_s: float, record_rate_hz: float, frame_t_s: np.ndarray) -> np.ndarray:
+    """The record times (s): every frame time, and k / record_rate_hz between the first and the
+    last frame (navigation covers the frames' span)."""
+    grid = np.arange(int(np.floor(t_impact_s * record_rate_hz)) + 1) / record_rate_hz
+    grid = grid[(grid >= frame_t_s.min()) & (grid <= frame_t_s.max()) & (grid < t_impact_s)]
+    return np.unique(np.concatenate([grid, frame_t_s]))
+
+
+def simulate(traj: TrajectoryConfig, cfg: ImuConfig, alt: AltimeterConfig, seed: int,
+             frame_t_s: np.ndarray) -> Sensors:
+    """IMU increments over the whole descent, the truth at the record times, altimeter samples."""
+    descent, _ = propagate(traj)
+    dt = 1.0 / cfg.rate_hz
+    k0 = int(np.floor(frame_t_s.min() * cfg.rate_hz + 1e-9))
+    k1 = min(int(np.ceil(frame_t_s.max() * cfg.rate_hz - 1e-9)),
+             int(np.floor(descent.t_impact_s * cfg.rate_hz)))
+    k1 = max(k1, k0 + 1)
+    n = k1 - k0
+    t_edges = np.clip((k0 + np.arange(n + 1)) / cfg.rate_hz, 0.0, descent.t_impact_s)
+    _, _, q = descent.states(t_edges)
+    model = cfg.model()
+    dtheta_true, dv_true = imu.true_increments(q, np.asarray(traj.specific_force_body_m_s2),
+                                               np.full(n, dt))
+    rng = stream(seed, _IMU_TAG)
+    gyro = imu.draw_triad(rng, model.gyro, n, dt)
+    accel = imu.draw_triad(rng, model.accel, n, dt)
+    samples = pl.DataFrame({
+        "t_s": t_edges[:-1],
+        **xyz_columns("dtheta", "_rad", imu.measure_triad(rng, gyro, model.gyro, dtheta_true, dt)),
+        **xyz_columns("dv", "_m_s", imu.measure_triad(rng, accel, model.accel, dv_true, dt)),
+    })
+
+    t_rec = record_times(descent.t_impact_s, cfg.record_rate_hz, frame_t_s)
+    r, v, q_rec = descent.states(t_rec)
+    k = np.clip(np.floor((t_rec - t_edges[0]) / dt + 1e-9).astype(int), 0, n - 1)
+    truth = pl.DataFrame({
+        "t_s": t_rec, **xyz_columns("r_mci", "_m", r), **xyz_columns("v_mci", "_m_s", v),
+        **quat_columns("q_mci_from_body", q_rec),
+        "altitude_m": np.linalg.norm(r, axis=1) - MOON_RADIUS_M,
+        **xyz_columns("b_gyro", "_rad_s", gyro.bias[k]),
+        **xyz_columns("b_accel", "_m_s2", accel.bias[k]),
+    })
+
+    altimeter = simulate_altimeter(descent, alt, seed, (frame_t_s.min(), frame_t_s.max()))
+    facts = {"imu_samples": n, "imu_rate_hz": cfg.rate_hz, "grade": cfg.grade,
+             "grade_source": model.source, "t_impact_s": descent.t_impact_s,
+             "gyro_matrix": gyro.matrix.tolist(), "accel_matrix": accel.matrix.tolist(),
+             "gyro_turn_on_bias_rad_s": gyro.bias[0].tolist(),
+             "accel_turn_on_bias_m_s2": accel.bias[0].tolist(),
+             "altimeter_samples": int(altimeter["returned"].sum())}
+    return Sensors(samples, truth, altimeter, facts)
+
+
+def simulate_altimeter(descent: Descent, alt: AltimeterConfig, seed: int,
+                       span_s: tuple[float, float]) -> pl.DataFrame:
+    """Laser altimeter samples at k / rate_hz in span_s (s) and before impact: the true slant
+    range along the boresight to the sphere, noise of 1-sigma sigma_m + sigma_share * range, no
+    return beyond max_range_km or during a dropout, and a bias step during a bias fault."""
+    n = int(np.floor(descent.t_impact_s * alt.rate_hz))
+    t = np.arange(n + 1) / alt.rate_hz
+    t = t[(t < descent.t_impact_s) & (t >= span_s[0]) & (t <= span_s[1])]
+    r, _, q = descent.states(t)
+    b = np.einsum("kij,j->ki", dcm_from_q(q), BORESIGHT_BODY)
+    rho_true = ray_sphere_distance(r, b, MOON_RADIUS_M)
+    sigma = alt.sigma_m + alt.sigma_share * rho_true
+    rng = stream(seed, _ALTIMETER_TAG)
+    rho = rho_true + sigma * rng.standard_normal(t.size)
+    in_fault = (t >= alt.fault_start_s) & (t < alt.fault_end_s)
+    if alt.fault == "bias":
+        rho = np.where(in_fault, rho + alt.fault_bias_m, rho)
+    returned = (np.isfinite(rho_true) & (rho_true <= alt.max_range_km * 1e3) & alt.enabled
+                & ~(in_fault & (alt.fault == "dropout")))
+    return pl.DataFrame({"t_s": t, "rho_true_m": rho_true, "rho_meas_m": np.where(returned, rho,
+                                                                                   np.nan),
+                         "returned": returned, "fault": in_fault & (alt.fault != "none")})

@@ -1,0 +1,56 @@
+"""Stage `imu`: the IMU and the laser altimeter, simulated from the true descent.
+
+A stage of its own, not part of `trajectory`: its config (grade, rate, altimeter, faults) and its
+random draws then never invalidate the frames, detections and estimates, and the trajectory stage
+keeps writing frames only. It propagates the descent again (deterministic, ~0.02 s) to sample the
+attitude at the IMU rate. Writes imu.parquet (every sample's increments), imu_truth.parquet (the
+truth at the record times: every frame and the decimated grid), altimeter.parquet and imu.rrd.
+"""
+
+from __future__ import annotations
+
+import json
+
+import polars as pl
+
+from pipeline.engine.stage import Stage, StageContext, StageResult
+from pipeline.ops.imu import simulate
+from pipeline.viz import recording
+
+RECORDED_RATE_HZ = 1.0  # the IMU's measured rates in the recording (the table keeps every sample)
+
+
+def run(ctx: StageContext) -> StageResult:
+    cfg, tx = ctx.cfg, ctx.tx
+    trajectory = pl.read_parquet(ctx.input("trajectory.parquet"))
+    sensors = simulate(cfg.trajectory, cfg.imu, cfg.altimeter, cfg.seed,
+                       trajectory["t_s"].to_numpy())
+    tx.table("imu", sensors.imu)
+    tx.table("imu_truth", sensors.truth)
+    tx.table("altimeter", sensors.altimeter)
+    tx.output("imu.json").write_text(json.dumps(sensors.facts, indent=2) + "\n")
+    every = max(round(cfg.imu.rate_hz / RECORDED_RATE_HZ), 1)
+    with recording.recording(ctx.store.run_id, tx.output("imu.rrd")) as rec:
+        recording.log_imu(rec, sensors.truth, sensors.altimeter, sensors.imu.gather_every(every),
+                          imu_rate_hz=cfg.imu.rate_hz, frames=trajectory)
+    folder = ctx.store.stage_dir("imu")
+    f = sensors.facts
+    return StageResult(info=f, summary=(
+        f"wrote {folder / 'imu.parquet'} ({f['imu_samples']:,} samples at {cfg.imu.rate_hz:g} Hz, "
+        f"{cfg.imu.grade} grade), imu_truth.parquet ({sensors.truth.height:,} record times), "
+        f"altimeter.parquet ({f['altimeter_samples']:,} returns at {cfg.altimeter.rate_hz:g} Hz)",
+        f"ask it: just sql --run {ctx.store.run_id} \"SELECT t_s, rho_meas_m FROM altimeter "
+        "WHERE returned LIMIT 5\"",
+        f"look at it: rerun {folder / 'imu.rrd'}",
+    ))
+
+
+STAGE = Stage(
+    name="imu",
+    doc="IMU increments and laser-altimeter ranges from the true descent",
+    reads=("trajectory", "imu", "altimeter", "seed"),
+    inputs=("trajectory.parquet",),
+    outputs=("imu.parquet", "imu_truth.parquet", "altimeter.parquet", "imu.json", "imu.rrd"),
+    code=("pipeline.stages.imu",),
+    run=run,
+)
