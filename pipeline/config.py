@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from pipeline.core import camera, orbit, synthetic
 from pipeline.core.constants import MOON_RADIUS_M
@@ -343,6 +344,7 @@ class DetectionConfig:
     sensor: str  # paper (Eq. 9-11) | physical (pixel camera, rim ellipses, the Sun)
     pixel_sigma_px: float  # physical: ellipse centre and semi-axes noise, 1-sigma
     distortion: tuple[float, ...]  # physical: k1, k2, p1, p2, k3 (OpenCV's model)
+    camera_mounting_deg: tuple[float, ...]  # physical: body-from-camera, 3-2-1 Euler (z, y, x)
     bearing: str  # physical: ellipse_centre | corrected (the conic's true-centre direction)
     range_source: str  # per_crater (sigma_range_m) | apparent_size | none
     detect_min_diameter_px: float  # physical detectability: nothing smaller is detected
@@ -382,6 +384,13 @@ class DetectionConfig:
                                                             "p2, k3")
         for i, c in enumerate(self.distortion):
             _num(c, f"{k}distortion[{i}]", -10.0, 10.0)
+        _check(len(self.camera_mounting_deg) == 3, k + "camera_mounting_deg",
+               "needs 3 angles (z, y, x; deg)")
+        for i, c in enumerate(self.camera_mounting_deg):
+            _num(c, f"{k}camera_mounting_deg[{i}]", -180.0, 180.0, unit="deg")
+        if self.sensor == "paper":
+            _check(not any(self.camera_mounting_deg), k + "camera_mounting_deg",
+                   "needs sensor = \"physical\" (the paper's camera is the body frame)")
         _check(self.bearing in BEARING_SOURCES, k + "bearing",
                f"= {self.bearing!r}: must be one of {BEARING_SOURCES}")
         _check(self.range_source in RANGE_SOURCES, k + "range_source",
@@ -401,7 +410,10 @@ class DetectionConfig:
         """The physical sensor's camera: the field of view, the image size, the distortion."""
         fov = camera.FieldOfView.from_config(self.fov_deg, self.fov_convention)
         k1, k2, p1, p2, k3 = self.distortion
-        return camera.PixelCamera.from_fov(fov, self.image_size_px, distortion=(k1, k2, p1, p2, k3))
+        z, y, x = np.radians(self.camera_mounting_deg)
+        mounting = Rotation.from_euler("ZYX", [z, y, x]).as_matrix()
+        return camera.PixelCamera.from_fov(fov, self.image_size_px, distortion=(k1, k2, p1, p2, k3),
+                                           dcm_body_from_cam=mounting)
 
 
 _TRUTH = {"literal": "truth"}  # field metadata: the TOML string "truth" stands for None

@@ -59,7 +59,7 @@ class Ellipses:
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.sqrt(np.einsum("...i,...i->...", v, v))[..., None]
 
 
 def _adjugate(m: np.ndarray) -> np.ndarray:

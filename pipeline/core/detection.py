@@ -115,7 +115,9 @@ def detect_frame(model: DetectionModel, craters: CraterArrays, r_mcmf_m: np.ndar
     """Detection model of one frame at spacecraft position r_mcmf_m (3,) and attitude; the
     physical sensor also needs the Sun's position sun_mcmf_m (3,) (m, Moon-centred MCMF) and
     the world's craters (`sensor.world_craters` of the whole catalogue, aligned with it)."""
-    boresight = dcm_body_from_mcmf[2]  # body +z in MCMF
+    boresight = dcm_body_from_mcmf[2]  # body +z in MCMF (the paper's camera is the body)
+    if model.physical is not None:  # the mounted camera's +z
+        boresight = model.physical.camera.dcm_body_from_cam[:, 2] @ dcm_body_from_mcmf
     centre, radius = camera.coverage_cap(r_mcmf_m, boresight, model.fov, model.moon_radius_m)
     rows = tiling.query_cap(craters.index, centre, radius)
     if model.physical is not None:
@@ -145,18 +147,20 @@ def detect_frame(model: DetectionModel, craters: CraterArrays, r_mcmf_m: np.ndar
     used = identification.select_used(rngs["select"], identified, model.max_craters,
                                       model.selection, craters.diam_km[row], rho_meas, pixel,
                                       model.image_size_px)
-    corner_rays = model.fov.border_rays_body(1) @ dcm_body_from_mcmf
-    dist = camera.ray_sphere_distance(r_mcmf_m, corner_rays, model.moon_radius_m)
     return FrameDetections(
         row=row, matched_row=row[matched], u_true_body=u_true, rho_true_m=rho_true,
         u_meas_body=u_meas, rho_meas_m=rho_meas, pixel_uv=pixel, identified=identified,
         used=used, n_candidates=int(in_view.sum()), d_min_km=d_min_km,
-        corners_mcmf_m=r_mcmf_m + dist[:, None] * corner_rays)
+        corners_mcmf_m=_corners(model, r_mcmf_m, dcm_body_from_mcmf))
 
 
 def _corners(model: DetectionModel, r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray
              ) -> np.ndarray:
-    corner_rays = model.fov.border_rays_body(1) @ dcm_body_from_mcmf
+    """The field's corner rays' surface points (4, 3) (MCMF, m; NaN where a ray misses)."""
+    rays = model.fov.border_rays_body(1)
+    if model.physical is not None:  # corner rays in camera axes, mounted on the body
+        rays = rays @ model.physical.camera.dcm_body_from_cam.T
+    corner_rays = rays @ dcm_body_from_mcmf
     dist = camera.ray_sphere_distance(r_mcmf_m, corner_rays, model.moon_radius_m)
     return r_mcmf_m + dist[:, None] * corner_rays
 
@@ -172,12 +176,13 @@ def _detect_physical(model: DetectionModel, phys: PhysicalSensor, craters: Crate
     dcm_cam_from_mcmf = cam.dcm_cam_from_body @ dcm_body_from_mcmf
     c_true, diam_true_m = world.r_mcmf_m[rows], world.diam_m[rows]
     p_body = (c_true - r_mcmf_m) @ dcm_body_from_mcmf.T
-    in_view = model.fov.contains(p_body) & camera.on_visible_side(c_true, r_mcmf_m)
+    p_cam = p_body @ cam.dcm_body_from_cam  # the field of view is the camera's
+    in_view = model.fov.contains(p_cam) & camera.on_visible_side(c_true, r_mcmf_m)
     # cheap bounds before the conics: the night side is dark, and no rim's image is wider than
     # 2 f D / rho (the pinhole stretches the image plane by at most 1 / cos^2 of the off-axis
     # angle, 2 at a 45 deg corner)
     sunlit = np.einsum("ij,ij->i", c_true, sun_mcmf_m - c_true) > 0.0
-    rho_m = np.linalg.norm(p_body, axis=1)
+    rho_m = np.linalg.norm(p_cam, axis=1)
     wide_enough = 2.1 * cam.fx_px * diam_true_m / rho_m >= phys.detectability.min_diameter_px
     keep = np.flatnonzero(in_view & sunlit & wide_enough)
     corners = _corners(model, r_mcmf_m, dcm_body_from_mcmf)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
+from scipy.stats import chi2
 
 from pipeline.core.navigation import eskf, filter
 from pipeline.core.navigation.eskf import ATT, BA, BG, N_STATES, POS, VEL, NavState
@@ -41,6 +42,7 @@ class NavigateOptions:
     sensor_noise: SensorNoise | None  # physical sensor: per-crater noise (else the scalars)
     imu: ImuGrade  # the IMU model the filter assumes
     altimeter_sigma: tuple[float, float] | float  # (sigma_m, share) of the range, or a fixed m
+    consistency_probability: float  # chi-square probability beyond which a batch NIS fails
     filter: filter.FilterOptions
 
 
@@ -167,15 +169,21 @@ def navigate(opts: NavigateOptions, imu_table: pl.DataFrame, truth: pl.DataFrame
     t_rec = truth["t_s"].to_numpy()
     records = filter.run(x0, p0, t0, imu, meas, t_rec, opts.filter)
     dr = filter.dead_reckon(x0, t0, imu, t_rec[t_rec >= t0], opts.filter.gravity)
-    table = _table(records, truth, dr, frame_of_time, opts.filter.smooth)
+    table = _table(records, truth, dr, frame_of_time, opts.filter.smooth,
+                   opts.consistency_probability)
     facts = {"t_start_s": t0, "initial_error": draw.tolist(), "measurements": len(meas)}
     return table, facts
 
 
 def _table(records: list[filter.Record], truth: pl.DataFrame, dr: NavState,
-           frame_of_time: dict[float, int], smooth: bool) -> pl.DataFrame:
+           frame_of_time: dict[float, int], smooth: bool, consistency_probability: float
+           ) -> pl.DataFrame:
     """One row per truth time: estimate, 1-sigma, true error, NEES, NIS and update counts; rows
-    before the filter starts are `not_initialised` with NaN estimates."""
+    before the filter starts are `not_initialised` with NaN estimates. A record is
+    `inconsistent` when its updates fail the filter's own test: the batch NIS of the accepted
+    measurements above its chi-square bound (the filter is more confident than its
+    measurements allow: what the truth would show as a NEES far above its dof), or most of a
+    frame's craters refused by the gate."""
     t = truth["t_s"].to_numpy()
     n = t.size
     true = truth_states(truth)
@@ -212,9 +220,10 @@ def _table(records: list[filter.Record], truth: pl.DataFrame, dr: NavState,
             sm_err[i] = filter.true_error(x_true, rec.smoothed_x)[:9]
             sm_sigma[i] = np.sqrt(np.diag(rec.smoothed_p))[:9]
     status = np.where(np.arange(n) < start, Status.NOT_INITIALISED.value, Status.OK.value)
-    # a frame whose offered craters the gate mostly refused: the filter disagrees with them
     refused = (counts[:, 1] >= 3) & (counts[:, 1] > counts[:, 0])
-    status = np.where(refused, Status.INCONSISTENT.value, status)
+    bound = np.where(nis_dof > 0, chi2.isf(1.0 - consistency_probability, np.maximum(nis_dof, 1)),
+                     np.inf)
+    status = np.where(refused | (nis > bound), Status.INCONSISTENT.value, status)
     dr_err = np.full((n, 3), np.nan)
     dr_err[start:] = dr.r_mci_m - true.r_mci_m[start:]
     frame = [frame_of_time.get(float(ti)) for ti in t]

@@ -171,11 +171,14 @@ _NAV_PREFIX = {"filter": "", "smoother": "smoothed_", "imu_only": "imu_only_"}
 def summarize_navigation(nav: pl.DataFrame, wins: tuple[Window, ...]) -> pl.DataFrame:
     """Per source (the filter, the RTS smoother, the IMU-only path) and window: position RMSE per
     MCI axis (m), velocity RMSE (m/s), attitude RMSE per body axis (deg), the error norm at the
-    window's last record (m), the share of records whose position error lies inside +-3 sigma
+    window's last record (m), the share of its estimates the filter's own test calls `ok`
+    (`share_ok`; the rest `inconsistent`), the share of records whose position error lies inside
+    +-3 sigma
     on every axis, the mean NEES of position, velocity and attitude (3 dof each; filter and
     smoother) and the updates rejected by the gate. Sources without values are left out."""
     t = nav["t_s"].to_numpy()
     ok = (nav["status"] != "not_initialised").to_numpy()
+    consistent = (nav["status"] == "ok").to_numpy()
     rows = []
     for source in NAV_SOURCES:
         p = _NAV_PREFIX[source]
@@ -198,6 +201,7 @@ def summarize_navigation(nav: pl.DataFrame, wins: tuple[Window, ...]) -> pl.Data
                    "records": int(((t >= w.start_s) & (t < w.end_s)).sum()),
                    "share_estimated": float(sel.sum() / max(((t >= w.start_s)
                                                              & (t < w.end_s)).sum(), 1)),
+                   "share_ok": float((sel & consistent).sum() / max(sel.sum(), 1)),
                    **{f"rmse_{c}_m": float(rms[i]) for i, c in enumerate("xyz")},
                    **{f"rmse_vel_{c}_m_s": float(rms_v[i]) for i, c in enumerate("xyz")},
                    **{f"rmse_att_{c}_deg": float(rms_a[i]) for i, c in enumerate("xyz")},

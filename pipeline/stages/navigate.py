@@ -41,6 +41,7 @@ def options(cfg: RunConfig) -> NavigateOptions:
         init_sigma_attitude_rad=float(np.radians(n.init_sigma_attitude_deg)),
         outage_s=outage, sensor_noise=navigator_sensor_noise(cfg), imu=assumed_imu,
         altimeter_sigma=altimeter_sigma,
+        consistency_probability=cfg.estimation.consistency_probability,
         filter=FilterOptions(noise=process_noise(assumed_imu), sigma_bearing=sigma_bearing,
                              sigma_range_m=sigma_range_m, gate_probability=n.gate_probability,
                              gravity=n.gravity, moon_radius_m=MOON_RADIUS_M,

@@ -130,8 +130,9 @@ def headline(cfg: RunConfig, store: RunStore) -> str:
         row = nav.row(0, named=True)
         lines.append(
             f"  filter RMSE {w.name}: X {row['rmse_x_m']:.3f} Y {row['rmse_y_m']:.3f} Z "
-            f"{row['rmse_z_m']:.3f} m ({row['share_within_3sigma']:.1%} of records inside 3 "
-            f"sigma; mean NEES pos {row['mean_nees_pos']:.2f}, att {row['mean_nees_att']:.2f})")
+            f"{row['rmse_z_m']:.3f} m ({row['share_ok']:.0%} of records ok, "
+            f"{row['share_within_3sigma']:.1%} inside 3 sigma; mean NEES pos "
+            f"{row['mean_nees_pos']:.2f}, att {row['mean_nees_att']:.2f})")
     lines.append(f"look at it: just view {store.run_id}")
     return "\n".join(lines)
 

@@ -387,9 +387,9 @@ def navigation_section(cfg: RunConfig, nav_summary: pl.DataFrame, summary: pl.Da
     n = cfg.navigation
     outage = ("none" if n.outage_start_s is None
               else f"{n.outage_start_s:g}-{n.outage_end_s:g} s")
-    head = ("| source | window | X (m) | Y (m) | Z (m) | error at last record (m) | "
+    head = ("| source | window | X (m) | Y (m) | Z (m) | error at last record (m) | ok | "
             "inside 3 sigma | mean NEES pos / vel / att (3) | craters rejected | "
-            "altimeter rejected |\n|---|---|---|---|---|---|---|---|---|---|")
+            "altimeter rejected |\n|---|---|---|---|---|---|---|---|---|---|---|")
     body = []
     for window in nav_summary["window"].unique(maintain_order=True).to_list():
         for row in nav_summary.filter(pl.col("window") == window).iter_rows(named=True):
@@ -399,7 +399,9 @@ def navigation_section(cfg: RunConfig, nav_summary: pl.DataFrame, summary: pl.Da
                       else f"{row['share_within_3sigma']:.1%}")
             body.append(f"| {row['source']} | {window} | {_fmt(row['rmse_x_m'])} | "
                         f"{_fmt(row['rmse_y_m'])} | {_fmt(row['rmse_z_m'])} | "
-                        f"{_fmt(row['err_last_m'])} | {inside} | {nees} | "
+                        f"{_fmt(row['err_last_m'])} | "
+                        f"{_pct(row['share_ok']) if row['source'] == 'filter' else ''} | "
+                        f"{inside} | {nees} | "
                         f"{row['craters_rejected']} | {row['altimeter_rejected']} |")
         for method in summary["method"].unique(maintain_order=True).to_list():
             s = summary.filter((pl.col("method") == method) & (pl.col("window") == window))
@@ -407,7 +409,7 @@ def navigation_section(cfg: RunConfig, nav_summary: pl.DataFrame, summary: pl.Da
                 v = dict(zip(s["quantity"].to_list(), s["rmse"].to_list(), strict=True))
                 body.append(f"| {method} (single frame, {s['share_estimated'][0]:.0%} of frames) "
                             f"| {window} | {_fmt(v['x_m'])} | {_fmt(v['y_m'])} | "
-                            f"{_fmt(v['z_m'])} | | | | | |")
+                            f"{_fmt(v['z_m'])} | | | | | | |")
     return f"""
 ## Navigation filter (IMU + craters + altimeter)
 
@@ -415,8 +417,10 @@ An error-state Kalman filter (15 states) on the {cfg.imu.grade}-grade IMU at
 {cfg.imu.rate_hz:g} Hz; crater updates `{n.crater_updates}`, altimeter
 {'on' if n.altimeter_updates else 'off'}, gate {n.gate_probability}, crater outage {outage},
 initialised `{n.init}`. RMSE over the records of each window (every frame and the decimated IMU
-grid); `inside 3 sigma` is the share of records whose position error is inside +-3 sigma on all
-three axes (~99.2 % for an honest Gaussian filter); the NEES of each 3-dof block is 3 when honest.
+grid); `ok` is the share of them that pass the filter's own test (the batch NIS of its accepted
+updates within its chi-square bound, most craters not refused by the gate; else `inconsistent`);
+`inside 3 sigma` is the share of records whose position error is inside +-3 sigma on all three
+axes (~99.2 % for an honest Gaussian filter); the NEES of each 3-dof block is 3 when honest.
 The single-frame methods' RMSE over their `ok` frames is listed below each window for comparison.
 
 ![navigation errors](fig_navigation.png)

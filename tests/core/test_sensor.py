@@ -849,3 +849,22 @@ def test_the_paper_sensor_has_no_physical_columns(field: Craters) -> None:
     r, dcm = pose(40e3)
     f = detect_frame(replace(MODEL, physical=None), field, r, dcm, 40e3, frame_rngs(1, 3))
     assert f.physical is None and f.row.size > 0 and np.isfinite(f.d_min_km)
+
+
+def test_a_mounted_camera_sees_its_own_field_and_reports_body_bearings(field: Craters) -> None:
+    """The camera pitched 12 deg on the body, the body pitched -12 deg: the camera looks at
+    nadir, so it sees what an unmounted camera on a nadir body sees, and the bearings it reports
+    are those of the body frame (the mounting applied)."""
+    mounting = Rotation.from_euler("ZYX", [0.0, 12.0, 0.0], degrees=True).as_matrix()
+    mounted = replace(MODEL, physical=replace(PHYS, camera=replace(CAM,
+                                                                    dcm_body_from_cam=mounting)))
+    r, dcm_nadir = pose(60e3)
+    dcm_body_from_mcmf = mounting @ dcm_nadir  # body = camera turned back by the mounting
+    sun = sun_at(r, 50.0)
+    plain = detect(MODEL, field, r, dcm_nadir, sun)
+    seen = detect(mounted, field, r, dcm_body_from_mcmf, sun)
+    assert plain.row.size > 100
+    np.testing.assert_array_equal(seen.row, plain.row)
+    np.testing.assert_allclose(seen.u_true_body, plain.u_true_body @ mounting.T, atol=1e-12)
+    np.testing.assert_allclose(seen.u_meas_body, plain.u_meas_body @ mounting.T, atol=1e-12)
+    np.testing.assert_allclose(seen.corners_mcmf_m, plain.corners_mcmf_m, rtol=1e-9)

@@ -157,11 +157,26 @@ def test_ignoring_the_catalogue_errors_makes_the_fixes_inconsistent(
         tmp_path: Path, catalogue_db: Path) -> None:
     """The same sensor, the navigator assuming a perfect catalogue: 100 m errors against 0.3 px
     (~40 m at 100 km) bearings fail the chi-square check on most frames."""
-    store = run(tmp_path, catalogue_db, "ignore", TO_ESTIMATE, CAMERA,
+    store = run(tmp_path, catalogue_db, "ignore", TO_SCORE, CAMERA,
                 {"catalogue_sigmas": "ignore"})
     est = table(store, "estimates").filter(pl.col("method") == "joint")
     assert est.height == N_FRAMES
     assert (est["status"] == "inconsistent").mean() > 0.5, est["status"].value_counts()
+    # and the filter, fusing them as if exact, fails its own batch NIS test
+    nav = table(store, "navigation")
+    assert (nav["status"] == "inconsistent").mean() > 0.5, nav["status"].value_counts()
+
+
+def test_the_filter_weighing_the_catalogue_errors_stays_inside_its_bounds(
+        camera_run: RunStore) -> None:
+    """Each crater's catalogue error spread over its sightings: the filter is not overconfident
+    (it may be cautious) and its own test passes."""
+    nav = table(camera_run, "navigation").filter(pl.col("t_s") >= 1910)
+    assert (nav["status"] == "ok").mean() > 0.95
+    inside = np.all([np.abs(nav[f"err_pos_{c}_m"]) <= 3 * nav[f"sigma_pos_{c}_m"]
+                     for c in "xyz"], axis=0)
+    assert inside.mean() > 0.95
+    assert nav["nees_pos"].mean() < 4.0
 
 
 def test_bearings_only_needs_the_joint_estimator(tmp_path: Path, catalogue_db: Path) -> None:
