@@ -178,13 +178,20 @@ def _detect_physical(model: DetectionModel, phys: PhysicalSensor, craters: Crate
     p_body = (c_true - r_mcmf_m) @ dcm_body_from_mcmf.T
     p_cam = p_body @ cam.dcm_body_from_cam  # the field of view is the camera's
     in_view = model.fov.contains(p_cam) & camera.on_visible_side(c_true, r_mcmf_m)
-    # cheap bounds before the conics: the night side is dark, and no rim's image is wider than
-    # 2 f D / rho (the pinhole stretches the image plane by at most 1 / cos^2 of the off-axis
-    # angle, 2 at a 45 deg corner)
-    sunlit = np.einsum("ij,ij->i", c_true, sun_mcmf_m - c_true) > 0.0
+    # cheap bounds before the conics, each where the detection probability is 0 anyway: the
+    # incidence outside the lit band, and rims whose image cannot reach the minimum size (a
+    # disc's image is at most f D / (rho cos^2 alpha), alpha its angle off the boresight)
+    d = phys.detectability
+    to_sun = sun_mcmf_m - c_true
+    cos_inc = (np.einsum("ij,ij->i", c_true, to_sun)
+               / np.sqrt(np.einsum("ij,ij->i", c_true, c_true)
+                         * np.einsum("ij,ij->i", to_sun, to_sun)))
+    lit = ((cos_inc > np.cos(np.radians(d.incidence_fall_deg[1])))
+           & (cos_inc < np.cos(np.radians(d.incidence_rise_deg[0]))))
     rho_m = np.linalg.norm(p_cam, axis=1)
-    wide_enough = 2.1 * cam.fx_px * diam_true_m / rho_m >= phys.detectability.min_diameter_px
-    keep = np.flatnonzero(in_view & sunlit & wide_enough)
+    cos_alpha = p_cam[:, 2] / rho_m
+    wide_enough = cam.fx_px * diam_true_m / (rho_m * cos_alpha**2) >= d.min_diameter_px
+    keep = np.flatnonzero(in_view & lit & wide_enough)
     corners = _corners(model, r_mcmf_m, dcm_body_from_mcmf)
     if keep.size == 0:  # night, or too high: nothing can be detected
         empty = np.zeros(0)

@@ -88,39 +88,21 @@ def gauss_newton_position(c_mci_m: np.ndarray, rho_m: np.ndarray, r0_mci_m: np.n
     c = np.asarray(c_mci_m, dtype=float)
     rho = np.asarray(rho_m, dtype=float)
     x = np.array(r0_mci_m, dtype=float)
-    if np.ndim(sigma_range_m) != 0:
-        return _weighted_gauss_newton(c, rho, x, step_tol_m, max_iterations,
-                                      np.asarray(sigma_range_m, dtype=float))
-    nan_x, nan_cov = np.full(3, np.nan), np.full((3, 3), np.nan)
-    for k in range(1, max_iterations + 1):
-        w, rng_m = line_of_sight(x, c)  # the range Jacobian is -w
-        h = w.T @ w
-        h_inv = _sym3_inverse(h)
-        if h_inv is None:
-            return nan_x, nan_cov, k, Status.DEGENERATE.value
-        step = h_inv @ ((rng_m - rho) @ w)
-        x += step
-        step_m = math.sqrt(float(step @ step))
-        if not math.isfinite(step_m):
-            return nan_x, nan_cov, k, Status.DEGENERATE.value
-        floor = ROUNDING_FACTOR * EPS * float(rng_m.max()) * math.sqrt(h_inv.trace())
-        if step_m <= max(step_tol_m, floor):
-            h_inv = inverse_if_well_conditioned(h)
-            if h_inv is None:
-                return nan_x, nan_cov, k, Status.DEGENERATE.value
-            return x, sigma_range_m**2 * h_inv, k, Status.OK.value
-    return nan_x, nan_cov, max_iterations, Status.NOT_CONVERGED.value
+    sigma = np.asarray(sigma_range_m, dtype=float)
+    if sigma.ndim == 0:  # every residual of weight 1 (exact: the scale is 1.0)
+        return _weighted_gauss_newton(c, rho, x, step_tol_m, max_iterations, np.ones(rho.size),
+                                      float(sigma))
+    return _weighted_gauss_newton(c, rho, x, step_tol_m, max_iterations,
+                                  float(sigma.min()) / sigma, float(sigma.min()))
 
 
 def _weighted_gauss_newton(c: np.ndarray, rho: np.ndarray, x: np.ndarray, step_tol_m: float,
-                           max_iterations: int, sigma_m: np.ndarray
+                           max_iterations: int, s: np.ndarray, scale: float
                            ) -> tuple[np.ndarray, np.ndarray, int, str]:
-    """`gauss_newton_position` with one range sigma per crater (n,) (m): the same iteration on
-    the residuals scaled by s_j = min(sigma) / sigma_j (so the best range keeps weight 1 and the
-    rounding floor its meaning), covariance min(sigma)^2 (J^T S^2 J)^-1."""
+    """`gauss_newton_position`'s iteration on the residuals scaled by s (n,) (s_j = min(sigma) /
+    sigma_j, so the best range keeps weight 1 and the rounding floor its meaning; all 1 for one
+    sigma), covariance scale^2 (J^T S^2 J)^-1 with scale = min(sigma) (m)."""
     nan_x, nan_cov = np.full(3, np.nan), np.full((3, 3), np.nan)
-    scale = float(sigma_m.min())
-    s = scale / sigma_m
     for k in range(1, max_iterations + 1):
         w, rng_m = line_of_sight(x, c)
         ws = w * (s * s)[:, None]
