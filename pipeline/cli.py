@@ -197,7 +197,7 @@ def compare(
         try:
             paths = {n: store.path(n) for n in need}
         except PipelineError as exc:
-            raise PipelineError(f"compare: run {run!r}: {exc}; run `just run {run}`") from None
+            raise PipelineError(f"compare: {exc}") from None
         d = json.loads((store.run_dir / "config.json").read_text())["detection"]
         k = camera.intrinsics(camera.FieldOfView.from_config(d["fov_deg"], d["fov_convention"]),
                               d["image_size_px"])
