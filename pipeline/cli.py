@@ -175,7 +175,7 @@ def sql(
 def compare(
     runs: Annotated[list[str], typer.Argument(help="Run ids (folders under runs/) to compare.")],
     name: Annotated[str | None, typer.Option(
-        help="Output folder runs/compare-<name>/ (default: the run ids joined by '+').")] = None,
+        help="Output folder runs/compare-<name>/ (default: the run ids joined by '_').")] = None,
 ) -> None:
     """Compare runs side by side: crater counts and errors against time and altitude, windows,
     and the ellipse-centre bias (runs/compare-<name>/report.md)."""
@@ -209,7 +209,7 @@ def compare(
         bias = cmp.centre_bias(run, pl.read_parquet(paths["detections.parquet"]), k)
         if bias is not None:
             biases.append(bias)
-    folder = workspace().runs_dir / f"compare-{name or '+'.join(runs)}"
+    folder = workspace().runs_dir / validate_run_id(f"compare-{name or '_'.join(runs)}")
     folder.mkdir(parents=True, exist_ok=True)
     path = report.write_compare_report(folder, pl.concat(series, how="diagonal"),
                                        pl.concat(windows, how="diagonal"),

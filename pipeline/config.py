@@ -37,6 +37,7 @@ from pipeline.core import camera, orbit, synthetic
 from pipeline.core.constants import MOON_RADIUS_M
 from pipeline.core.navigation import imu
 from pipeline.errors import ConfigError
+from pipeline.io.ephemeris import parse_epoch_utc
 from pipeline.io.workspace import workspace
 from pipeline.vocab import METHODS
 
@@ -279,9 +280,10 @@ class TrajectoryConfig:
         _num(self.rtol, k + "rtol", 1e-13, 1e-3, why="DOP853 cannot go below ~100 eps")
         _num(self.atol_m, k + "atol_m", 1e-9, 1e3, unit="m")
         if self.epoch_utc is not None:
-            _check(bool(re.fullmatch(r"\d{4}-\d\d-\d\d([T ][0-9:.]+)?(Z|[+-]\d\d:?\d\d)?",
-                                     self.epoch_utc.strip())), k + "epoch_utc",
-                   f"= {self.epoch_utc!r}: an ISO 8601 UTC time, e.g. \"2026-01-30T08:40:00Z\"")
+            try:
+                parse_epoch_utc(self.epoch_utc)  # ISO 8601 and within DE421
+            except ConfigError as exc:
+                raise ConfigError(f"{k}epoch_utc: {exc}") from None
 
     @property
     def has_thrust(self) -> bool:
@@ -731,6 +733,15 @@ class RunConfig:
         validate_run_id(self.run_id)
         _check(self.detection.sensor == "paper" or self.trajectory.epoch_utc is not None,
                "trajectory.epoch_utc", "the physical sensor needs an epoch (the Sun's position)")
+        n = self.navigation
+        if n.crater_updates == "loose" or n.init == "first_fix":
+            _check(n.loose_method in self.estimation.methods, "navigation.loose_method",
+                   f"= {n.loose_method!r} is not run (estimation.methods = "
+                   f"{list(self.estimation.methods)}): its poses are what loose updates and "
+                   "first_fix use")
+            _check(not (n.loose_method == "paper" and self.detection.range_source == "none"),
+                   "navigation.loose_method", "= 'paper' needs ranges (detection.range_source "
+                   "= \"none\"): use \"joint\"")
         # Cross-section: what the scoring needs of the trajectory (known without thrust).
         impact = self.trajectory.ballistic_impact_s()
         if impact is not None:

@@ -59,10 +59,16 @@ def centre_bias(run: str, detections: pl.DataFrame, k: np.ndarray) -> pl.DataFra
 def window_rows(run: str, summary: pl.DataFrame, nav_summary: pl.DataFrame) -> pl.DataFrame:
     """Per window of one run: the joint's and the filter's position RMSE per axis (m), the
     share of frames with a joint fix, and the filter's mean position NEES."""
-    joint = summary.filter(pl.col("method") == "joint").pivot(
-        "quantity", index=["window", "share_estimated"], values="rmse").select(
-        "window", "share_estimated", pl.col("x_m").alias("joint_x_m"),
-        pl.col("y_m").alias("joint_y_m"), pl.col("z_m").alias("joint_z_m"))
+    joint = summary.filter(pl.col("method") == "joint")
+    if joint.height == 0:  # a run without the joint estimator
+        joint = summary.select("window").unique(maintain_order=True).with_columns(
+            pl.lit(None, pl.Float64).alias(c) for c in
+            ("share_estimated", "joint_x_m", "joint_y_m", "joint_z_m"))
+    else:
+        joint = joint.pivot("quantity", index=["window", "share_estimated"],
+                            values="rmse").select(
+            "window", "share_estimated", pl.col("x_m").alias("joint_x_m"),
+            pl.col("y_m").alias("joint_y_m"), pl.col("z_m").alias("joint_z_m"))
     filt = nav_summary.filter(pl.col("source") == "filter").select(
         "window", pl.col("rmse_x_m").alias("filter_x_m"), pl.col("rmse_y_m").alias("filter_y_m"),
         pl.col("rmse_z_m").alias("filter_z_m"), "mean_nees_pos")

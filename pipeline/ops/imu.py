@@ -22,6 +22,7 @@ from pipeline.config import AltimeterConfig, ImuConfig, TrajectoryConfig
 from pipeline.core.camera import ray_sphere_distance
 from pipeline.core.constants import MOON_RADIUS_M
 from pipeline.core.navigation import imu
+from pipeline.core.navigation.filter import TIME_TOL_S
 from pipeline.core.orbit import Descent
 from pipeline.core.rotations import dcm_from_q
 from pipeline.io.tables import quat_columns, xyz_columns
@@ -52,7 +53,11 @@ def record_times(t_impact_s: float, record_rate_hz: float, frame_t_s: np.ndarray
     last frame (navigation covers the frames' span)."""
     grid = np.arange(int(np.floor(t_impact_s * record_rate_hz)) + 1) / record_rate_hz
     grid = grid[(grid >= frame_t_s.min()) & (grid <= frame_t_s.max()) & (grid < t_impact_s)]
-    return np.unique(np.concatenate([grid, frame_t_s]))
+    # a grid time within TIME_TOL_S of a frame is that frame (k / r computed two ways)
+    frames_sorted = np.sort(frame_t_s)
+    i = np.clip(np.searchsorted(frames_sorted, grid), 1, max(frames_sorted.size - 1, 1))
+    near = np.minimum(np.abs(grid - frames_sorted[i - 1]), np.abs(grid - frames_sorted[i]))
+    return np.unique(np.concatenate([grid[near > TIME_TOL_S], frame_t_s]))
 
 
 def simulate(traj: TrajectoryConfig, cfg: ImuConfig, alt: AltimeterConfig, seed: int,
@@ -79,7 +84,9 @@ def simulate(traj: TrajectoryConfig, cfg: ImuConfig, alt: AltimeterConfig, seed:
         **xyz_columns("dv", "_m_s", imu.measure_triad(rng, accel, model.accel, dv_true, dt)),
     })
 
-    t_rec = record_times(descent.t_impact_s, cfg.record_rate_hz, frame_t_s)
+    # navigation ends with the IMU's last whole sample before impact
+    frames_in = frame_t_s[frame_t_s <= t_edges[-1] + TIME_TOL_S]
+    t_rec = record_times(descent.t_impact_s, cfg.record_rate_hz, frames_in)
     r, v, q_rec = descent.states(t_rec)
     k = np.clip(np.floor((t_rec - t_edges[0]) / dt + 1e-9).astype(int), 0, n - 1)
     truth = pl.DataFrame({
@@ -90,7 +97,7 @@ def simulate(traj: TrajectoryConfig, cfg: ImuConfig, alt: AltimeterConfig, seed:
         **xyz_columns("b_accel", "_m_s2", accel.bias[k]),
     })
 
-    altimeter = simulate_altimeter(descent, alt, seed, (frame_t_s.min(), frame_t_s.max()))
+    altimeter = simulate_altimeter(descent, alt, seed, (frames_in.min(), frames_in.max()))
     facts = {"imu_samples": n, "imu_rate_hz": cfg.rate_hz, "grade": cfg.grade,
              "grade_source": model.source, "t_impact_s": descent.t_impact_s,
              "gyro_matrix": gyro.matrix.tolist(), "accel_matrix": accel.matrix.tolist(),

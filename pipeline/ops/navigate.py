@@ -20,6 +20,7 @@ from pipeline.core.navigation.eskf import ATT, BA, BG, N_STATES, POS, VEL, NavSt
 from pipeline.core.navigation.imu import ImuGrade
 from pipeline.core.sensor import SensorNoise
 from pipeline.core.status import Status
+from pipeline.errors import StageInputError
 from pipeline.io.tables import quat_columns, quats, xyz, xyz_columns
 from pipeline.ops.estimate import UsedCraters
 from pipeline.ops.imu import stream
@@ -43,15 +44,16 @@ class NavigateOptions:
     imu: ImuGrade  # the IMU model the filter assumes
     altimeter_sigma: tuple[float, float] | float  # (sigma_m, share) of the range, or a fixed m
     consistency_probability: float  # chi-square probability beyond which a batch NIS fails
+    imu_rate_hz: float  # the IMU's sample rate (its table's step, exactly)
     filter: filter.FilterOptions
 
 
-def imu_samples(table: pl.DataFrame) -> filter.ImuSamples:
-    """The filter's view of the imu table (uniform samples from its first time)."""
+def imu_samples(table: pl.DataFrame, rate_hz: float) -> filter.ImuSamples:
+    """The filter's view of the imu table (uniform samples of 1 / rate_hz s from its first
+    time)."""
     t = table["t_s"].to_numpy()
-    dt = float(t[1] - t[0]) if t.size > 1 else 1.0
-    return filter.ImuSamples(dt, xyz(table, "dtheta", "_rad"), xyz(table, "dv", "_m_s"),
-                             float(t[0]) if t.size else 0.0)
+    return filter.ImuSamples(1.0 / rate_hz, xyz(table, "dtheta", "_rad"),
+                             xyz(table, "dv", "_m_s"), float(t[0]) if t.size else 0.0)
 
 
 def truth_states(truth: pl.DataFrame) -> NavState:
@@ -114,11 +116,12 @@ def initial_state(opts: NavigateOptions, truth: pl.DataFrame, estimates: pl.Data
     return float(t[i0]), x0, p0, eskf.difference(x0, x_true)
 
 
-class _NoFix(ValueError):
+class _NoFix(StageInputError):
     """first_fix initialisation without any ok fix of the method."""
 
     def __init__(self, method: str) -> None:
-        super().__init__(f"navigation.init = \"first_fix\": no ok fix of {method!r} in the run")
+        super().__init__(f"navigation.init = \"first_fix\": no ok fix of {method!r} in the "
+                         "run to start from")
 
 
 def measurements(opts: NavigateOptions, craters: UsedCraters, estimates: pl.DataFrame,
@@ -164,8 +167,10 @@ def navigate(opts: NavigateOptions, imu_table: pl.DataFrame, truth: pl.DataFrame
              frame_of_time: dict[float, int], seed: int) -> tuple[pl.DataFrame, dict]:
     """The navigation table (one row per record time: the truth table's times) and facts."""
     t0, x0, p0, draw = initial_state(opts, truth, estimates, seed)
-    imu = imu_samples(imu_table)
+    imu = imu_samples(imu_table, opts.imu_rate_hz)
     meas = measurements(opts, craters, estimates, altimeter)
+    if opts.init == "first_fix":  # the fix that starts the filter is not fused a second time
+        meas = [m for m in meas if isinstance(m, filter.AltimeterSample) or m.t_s != t0]
     t_rec = truth["t_s"].to_numpy()
     records = filter.run(x0, p0, t0, imu, meas, t_rec, opts.filter)
     dr = filter.dead_reckon(x0, t0, imu, t_rec[t_rec >= t0], opts.filter.gravity)
@@ -182,8 +187,8 @@ def _table(records: list[filter.Record], truth: pl.DataFrame, dr: NavState,
     before the filter starts are `not_initialised` with NaN estimates. A record is
     `inconsistent` when its updates fail the filter's own test: the batch NIS of the accepted
     measurements above its chi-square bound (the filter is more confident than its
-    measurements allow: what the truth would show as a NEES far above its dof), or most of a
-    frame's craters refused by the gate."""
+    measurements allow: what the truth would show as a NEES far above its dof), or more of a
+    frame's craters refused by the gate than used; and it stays so until updates pass again."""
     t = truth["t_s"].to_numpy()
     n = t.size
     true = truth_states(truth)
@@ -220,10 +225,18 @@ def _table(records: list[filter.Record], truth: pl.DataFrame, dr: NavState,
             sm_err[i] = filter.true_error(x_true, rec.smoothed_x)[:9]
             sm_sigma[i] = np.sqrt(np.diag(rec.smoothed_p))[:9]
     status = np.where(np.arange(n) < start, Status.NOT_INITIALISED.value, Status.OK.value)
-    refused = (counts[:, 1] >= 3) & (counts[:, 1] > counts[:, 0])
+    refused = (counts[:, 1] > 0) & (counts[:, 1] > counts[:, 0])
     bound = np.where(nis_dof > 0, chi2.isf(1.0 - consistency_probability, np.maximum(nis_dof, 1)),
                      np.inf)
-    status = np.where(refused | (nis > bound), Status.INCONSISTENT.value, status)
+    failed = refused | (nis > bound)
+    # a failed test holds until updates pass it again (coasting proves nothing)
+    passed = (nis_dof > 0) & ~failed
+    held = np.zeros(n, bool)
+    state = False
+    for i in range(start, n):
+        state = bool(failed[i] or (state and not passed[i]))
+        held[i] = state
+    status = np.where(held, Status.INCONSISTENT.value, status)
     dr_err = np.full((n, 3), np.nan)
     dr_err[start:] = dr.r_mci_m - true.r_mci_m[start:]
     frame = [frame_of_time.get(float(ti)) for ti in t]

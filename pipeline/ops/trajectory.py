@@ -45,9 +45,13 @@ def propagate(t: TrajectoryConfig) -> tuple[orbit.Descent, float]:
     if t.jitter_rate_sigma_rad_s > 0:
         jitter = orbit.jitter_rate(np.random.default_rng(t.jitter_seed), t.jitter_rate_sigma_rad_s,
                                    t.jitter_knot_s, t.jitter_horizon_s())
-    descent = orbit.propagate_descent(
-        r0, v0, q0, specific_force_body_m_s2=t.specific_force_body_m_s2, jitter=jitter,
-        rtol=t.rtol, atol_m=t.atol_m)
+    try:
+        descent = orbit.propagate_descent(
+            r0, v0, q0, specific_force_body_m_s2=t.specific_force_body_m_s2, jitter=jitter,
+            rtol=t.rtol, atol_m=t.atol_m)
+    except ValueError as exc:  # e.g. a thrust that keeps the orbit off the surface
+        raise ConfigError(f"trajectory: {exc} (check specific_force_body_m_s2 and the "
+                          "periapsis)") from None
     return descent, rp
 
 

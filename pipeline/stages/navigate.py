@@ -42,6 +42,7 @@ def options(cfg: RunConfig) -> NavigateOptions:
         outage_s=outage, sensor_noise=navigator_sensor_noise(cfg), imu=assumed_imu,
         altimeter_sigma=altimeter_sigma,
         consistency_probability=cfg.estimation.consistency_probability,
+        imu_rate_hz=cfg.imu.rate_hz,
         filter=FilterOptions(noise=process_noise(assumed_imu), sigma_bearing=sigma_bearing,
                              sigma_range_m=sigma_range_m, gate_probability=n.gate_probability,
                              gravity=n.gravity, moon_radius_m=MOON_RADIUS_M,
@@ -78,8 +79,8 @@ def run(ctx: StageContext) -> StageResult:
         f"{int(table['craters_used'].sum()):,} craters used, "
         f"{int(table['craters_rejected'].sum()):,} rejected by the gate; position error at the "
         f"last record {err_last:.2f} m)",
-        f"ask it: just sql --run {ctx.store.run_id} \"SELECT t_s, err_pos_x_m, sigma_pos_x_m, "
-        "nees_pos FROM navigation WHERE frame = 2000\"",
+        f"ask it: just sql --run {ctx.store.run_id} \"SELECT t_s, status, err_pos_x_m, "
+        "sigma_pos_x_m, nees_pos FROM navigation ORDER BY t_s DESC LIMIT 5\"",
         f"look at it: rerun {folder / 'navigation.rrd'}",
     ))
 

@@ -126,13 +126,15 @@ def headline(cfg: RunConfig, store: RunStore) -> str:
             + (f"; {others}" if others else "") + ")")
     nav = pl.read_parquet(store.path("navigation_summary.parquet")).filter(
         (pl.col("source") == "filter") & (pl.col("window") == w.name))
-    if nav.height:
+    if nav.height and np.isfinite(nav["rmse_x_m"][0]):
         row = nav.row(0, named=True)
         lines.append(
             f"  filter RMSE {w.name}: X {row['rmse_x_m']:.3f} Y {row['rmse_y_m']:.3f} Z "
             f"{row['rmse_z_m']:.3f} m ({row['share_ok']:.0%} of records ok, "
             f"{row['share_within_3sigma']:.1%} inside 3 sigma; mean NEES pos "
             f"{row['mean_nees_pos']:.2f}, att {row['mean_nees_att']:.2f})")
+    elif nav.height:
+        lines.append(f"  filter {w.name}: no record (the window is outside the run's frames)")
     lines.append(f"look at it: just view {store.run_id}")
     return "\n".join(lines)
 

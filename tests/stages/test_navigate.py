@@ -159,9 +159,50 @@ def test_same_config_same_tables_other_seed_other_draws(tmp_path: Path,
     ({"imu": {"accel": {"bias_mg": "lots"}}}, "imu.accel.bias_mg"),
     ({"altimeter": {"fault": "smoke"}}, "altimeter.fault"),
     ({"imu": {"rate_hz": 5000.0}}, "imu.rate_hz"),
+    ({"navigation": {"crater_updates": "loose", "loose_method": "paper"},
+      "estimation": {"methods": ["joint"]}}, "navigation.loose_method"),
+    ({"trajectory": {"epoch_utc": "2060-01-01T00:00:00Z"}}, "trajectory.epoch_utc"),
+    ({"trajectory": {"epoch_utc": "2026-13-45T99:99:99Z"}}, "trajectory.epoch_utc"),
 ])
 def test_bad_navigation_config_is_one_line_naming_the_key(override, key) -> None:
     with pytest.raises(ConfigError) as err:
         load_config(DEFAULT_TOML, "bad", override)
     message = str(err.value)
     assert key in message and "\n" not in message
+
+
+def test_frames_off_the_record_grid_and_updates_between_records(tmp_path: Path,
+                                                                 catalogue_db: Path) -> None:
+    """Frames at 0.7 Hz (k / 0.7 computed two ways lands 1e-13 s apart from the 1 Hz grid): one
+    row per time, no duplicate; an altimeter at 10 Hz between 1 Hz records: every sample
+    counted in the next record."""
+    cfg = small_config("odd", catalogue_db, {"start_s": 2850.0, "end_s": 2880.0,
+                                             "frame_rate_hz": 0.7},
+                       altimeter={"rate_hz": 10.0})
+    run_stages(cfg, tmp_path, RUN)
+    store = RunStore("odd", tmp_path)
+    nav = pl.read_parquet(store.path("navigation.parquet"))
+    t = nav["t_s"].to_numpy()
+    assert np.all(np.diff(t) > 1e-3)
+    frames = pl.read_parquet(store.path("trajectory.parquet"))
+    assert nav["frame"].drop_nulls().to_list() == frames["frame"].to_list()
+    altimeter = pl.read_parquet(store.path("altimeter.parquet")).filter(pl.col("returned"))
+    counted = int(nav["altimeter_used"].sum() + nav["altimeter_rejected"].sum())
+    assert counted == altimeter.filter(pl.col("t_s") <= t.max() + 1e-9).height > 200
+
+
+def test_first_fix_is_not_fused_twice(tmp_path: Path, catalogue_db: Path) -> None:
+    """Started from the first fix, the first record's position sigma is that fix's (fusing the
+    same fix again would divide it by sqrt(2))."""
+    cfg = small_config("ff", catalogue_db, WINDOW,
+                       navigation={"crater_updates": "loose", "init": "first_fix"})
+    run_stages(cfg, tmp_path, RUN)
+    store = RunStore("ff", tmp_path)
+    nav = pl.read_parquet(store.path("navigation.parquet"))
+    est = pl.read_parquet(store.path("estimates.parquet")).filter(
+        (pl.col("method") == "joint") & (pl.col("status") == "ok")).sort("t_s")
+    first = nav.filter(pl.col("status") == "ok").row(0, named=True)
+    fix = est.row(0, named=True)
+    assert first["t_s"] == fix["t_s"]
+    for c in "xyz":
+        assert first[f"sigma_pos_{c}_m"] == pytest.approx(fix[f"sigma_pos_{c}_m"], rel=1e-6)

@@ -22,6 +22,7 @@ from pipeline.core.navigation.strapdown import Trajectory, gravity_gradient, mec
 from pipeline.core.rotations import q_log, q_multiply
 
 BORESIGHT_BODY = np.array([0.0, 0.0, 1.0])  # the camera and altimeter look along body +z
+TIME_TOL_S = 1e-6  # times closer than this are one time (k / rate computed two ways)
 
 
 @dataclass(frozen=True)
@@ -124,8 +125,9 @@ class ImuSamples:
         if t_b > self._t_end_s + 1e-6 or t_a < self.t0_s - 1e-6:  # rounding of k dt
             raise ValueError(f"[{t_a}, {t_b}] s lies outside the IMU record "
                              f"[{self.t0_s}, {self._t_end_s}]")
-        k_a = int(np.floor((t_a - self.t0_s) / self.dt_s + 1e-9))
-        k_b = min(int(np.ceil((t_b - self.t0_s) / self.dt_s - 1e-9)), self.dtheta_rad.shape[0])
+        n = self.dtheta_rad.shape[0]
+        k_a = min(int(np.floor((t_a - self.t0_s) / self.dt_s + 1e-9)), n - 1)
+        k_b = min(int(np.ceil((t_b - self.t0_s) / self.dt_s - 1e-9)), n)
         k = np.arange(k_a, max(k_b, k_a + 1))
         lo = np.maximum(self.t0_s + k * self.dt_s, t_a)
         hi = np.minimum(self.t0_s + (k + 1) * self.dt_s, t_b)
@@ -138,20 +140,25 @@ class ImuSamples:
 def dead_reckon(x0: NavState, t0_s: float, imu: ImuSamples, t_out_s: np.ndarray, gravity: str
                 ) -> NavState:
     """IMU-only path from x0 at t0_s, biases held at x0's: states (arrays (T, 3), (T, 4)) at the
-    increasing times t_out_s (s) >= t0_s."""
-    dtheta, dv, dt = imu.between(t0_s, float(t_out_s[-1]))
-    dtheta = dtheta - x0.b_gyro_rad_s * dt[:, None]
-    dv = dv - x0.b_accel_m_s2 * dt[:, None]
-    path = mechanise(x0.r_mci_m, x0.v_mci_m_s, x0.q_mci_from_body, dtheta, dv, dt,
-                     gravity=gravity)
-    t_end = t0_s + np.cumsum(dt)
-    idx = np.clip(np.searchsorted(t_end, t_out_s - 1e-9), 0, t_end.size - 1)
-    at_start = t_out_s <= t0_s + 1e-12
-    r = np.where(at_start[:, None], x0.r_mci_m, path.r_mci_m[idx])
-    v = np.where(at_start[:, None], x0.v_mci_m_s, path.v_mci_m_s[idx])
-    q = np.where(at_start[:, None], x0.q_mci_from_body, path.q_mci_from_body[idx])
+    increasing times t_out_s (s) >= t0_s, each at its own time (samples cut where it falls)."""
+    r, v, q = [x0.r_mci_m], [x0.v_mci_m_s], [x0.q_mci_from_body]
+    t_prev = t0_s
+    for t in t_out_s:
+        if t - t_prev > TIME_TOL_S:
+            dtheta, dv, dt = imu.between(t_prev, float(t))
+            path = mechanise(r[-1], v[-1], q[-1], dtheta - x0.b_gyro_rad_s * dt[:, None],
+                             dv - x0.b_accel_m_s2 * dt[:, None], dt, gravity=gravity)
+            r.append(path.r_mci_m[-1])
+            v.append(path.v_mci_m_s[-1])
+            q.append(path.q_mci_from_body[-1])
+            t_prev = float(t)
+        else:
+            r.append(r[-1])
+            v.append(v[-1])
+            q.append(q[-1])
     n = t_out_s.size
-    return NavState(r, v, q, np.broadcast_to(x0.b_gyro_rad_s, (n, 3)),
+    return NavState(np.array(r[1:]), np.array(v[1:]), np.array(q[1:]),
+                    np.broadcast_to(x0.b_gyro_rad_s, (n, 3)),
                     np.broadcast_to(x0.b_accel_m_s2, (n, 3)))
 
 
@@ -160,25 +167,35 @@ def run(x0: NavState, p0: np.ndarray, t0_s: float, imu: ImuSamples,
         ) -> list[Record]:
     """Run the filter from (x0, p0) at t0_s over the measurements (any order; those outside
     [t0_s, last record time] are ignored) and return a Record at each record time >= t0_s
-    (sorted, unique). Measurements at a record time are applied before it is recorded."""
+    (sorted, unique). Measurements at a record time are applied before it is recorded; the
+    counts and NIS of updates between two record times go to the next record. Times closer than
+    TIME_TOL_S are one time (a frame and a grid point computed two ways)."""
     gate = {}
     if opts.gate_probability is not None:
         gate = {dof: float(chi2.ppf(opts.gate_probability, dof)) for dof in (1, 2, 3, 6)}
-    record_set = {float(t) for t in record_times_s if t >= t0_s}
+    record_list = _merge_times(np.asarray(record_times_s, dtype=float))
+    record_list = record_list[record_list >= t0_s - TIME_TOL_S]
+    record_set = {float(t) for t in record_list}
     t_end = max([*record_set, t0_s])
+    snap = np.array(sorted(record_set | {t0_s}))
     by_time: dict[float, list[Measurement]] = {}
     for m in measurements:
-        if t0_s <= m.t_s <= t_end:
-            by_time.setdefault(float(m.t_s), []).append(m)
-    grid = np.arange(t0_s, t_end, opts.max_step_s)
-    times = sorted({*by_time, *record_set, *(float(t) for t in grid[1:])} - {t0_s})
+        if t0_s - TIME_TOL_S <= m.t_s <= t_end + TIME_TOL_S:
+            by_time.setdefault(_snap(float(m.t_s), snap), []).append(m)
+    grid = np.arange(t0_s, t_end, opts.max_step_s)[1:]
+    times = [float(t) for t in _merge_times(np.array([*by_time, *record_set, *grid]))
+             if t > t0_s + TIME_TOL_S]
 
     x, p = x0, p0.copy()
     records: list[Record] = []
     steps: list[_Step] = []
+    pending = Record(t0_s, x0, p0)  # updates not yet recorded
+    t0_rec = _apply(x, p, t0_s, by_time.get(_snap(t0_s, snap), []), opts, gate)
+    x, p = t0_rec.x, t0_rec.p
     if t0_s in record_set:
-        records.append(_apply(x, p, t0_s, by_time.get(t0_s, []), opts, gate))
-        x, p = records[-1].x, records[-1].p
+        records.append(t0_rec)
+    else:
+        _carry(pending, t0_rec)
     t_prev = t0_s
     for t in times:
         x_pred, p_pred, phi = _propagate(x, p, t_prev, t, imu, opts)
@@ -187,17 +204,57 @@ def run(x0: NavState, p0: np.ndarray, t0_s: float, imu: ImuSamples,
         if opts.smooth:
             steps.append(_Step(phi, x_pred, p_pred, x, p))
         if t in record_set:
+            _carry(rec, pending)
+            pending = Record(t, x, p)
             records.append(rec)
+        else:
+            _carry(pending, rec)
         t_prev = t
     if opts.smooth:
         _smooth(records, steps, times, t0_s)
     return records
 
 
+def _merge_times(t_s: np.ndarray) -> np.ndarray:
+    """Sorted times (s) with those within TIME_TOL_S of the previous kept one dropped."""
+    t = np.sort(np.asarray(t_s, dtype=float))
+    if t.size == 0:
+        return t
+    keep = [0]
+    for i in range(1, t.size):
+        if t[i] - t[keep[-1]] > TIME_TOL_S:
+            keep.append(i)
+    return t[keep]
+
+
+def _snap(t: float, times: np.ndarray) -> float:
+    """t, or the time of `times` (sorted) within TIME_TOL_S of it."""
+    i = int(np.searchsorted(times, t))
+    for j in (i - 1, i):
+        if 0 <= j < times.size and abs(times[j] - t) <= TIME_TOL_S:
+            return float(times[j])
+    return t
+
+
+def _carry(into: Record, update: Record) -> None:
+    """Add an unrecorded step's update counts and NIS to a record."""
+    into.craters_used += update.craters_used
+    into.craters_rejected += update.craters_rejected
+    into.fixes_used += update.fixes_used
+    into.fixes_rejected += update.fixes_rejected
+    into.altimeter_used += update.altimeter_used
+    into.altimeter_rejected += update.altimeter_rejected
+    if update.nis_dof:
+        into.nis = (0.0 if not into.nis_dof else into.nis) + update.nis
+        into.nis_dof += update.nis_dof
+
+
 def _propagate(x: NavState, p: np.ndarray, t_a: float, t_b: float, imu: ImuSamples,
                opts: FilterOptions) -> tuple[NavState, np.ndarray, np.ndarray]:
     """Nominal state and covariance from t_a to t_b, and the step's transition Phi."""
     dtheta, dv, dt = imu.between(t_a, t_b)
+    if dt.size == 0:  # nothing between the two times: no step
+        return x, p, np.eye(eskf.N_STATES)
     dtheta = dtheta - x.b_gyro_rad_s * dt[:, None]
     dv = dv - x.b_accel_m_s2 * dt[:, None]
     span = float(dt.sum())
@@ -236,8 +293,13 @@ def _apply(x: NavState, p: np.ndarray, t: float, batch: list[Measurement], opts:
                          None if not gate else np.where(per_dof == 3, gate[3], gate[2]))
             rec.craters_used += int(keep.sum())
             rec.craters_rejected += int((~keep).sum())
-            e, j = e[keep].reshape(-1), j[keep].reshape(-1, 6)
-            dof = int(per_dof[keep].sum())
+            if keep.any():
+                up = _iterated_crater_update(rec.x, rec.p, _subset(m, keep), opts)
+                rec.x = eskf.inject(rec.x, up.dx)
+                rec.p = eskf.reset_covariance(up.p, up.dx)
+                nis_total += up.nis
+                dof_total += int(per_dof[keep].sum())
+            continue
         elif isinstance(m, PoseFix):
             e, j = _pose_system(rec.x, m)
             keep = _gate(rec.p[np.ix_(POSE, POSE)], e[None], j[None], gate.get(6))
@@ -264,6 +326,47 @@ def _apply(x: NavState, p: np.ndarray, t: float, batch: list[Measurement], opts:
     if dof_total:
         rec.nis, rec.nis_dof = nis_total, dof_total
     return rec
+
+
+IEKF_MAX_ITERATIONS = 10
+IEKF_STEP_TOL = 1e-3  # stop when a relinearised step moves the position below this (m)
+
+
+def _iterated_crater_update(x: NavState, p: np.ndarray, m: CraterFrame, opts: FilterOptions
+                            ) -> eskf.Update:
+    """The crater update, relinearised about its own result until it stops moving (the iterated
+    EKF: Bell & Cathey, IEEE TAC 38(2), 1993; a Gauss-Newton on the prior and the craters):
+    with J_i, e_i at the iterate x_i = x + dx_i, the update of the linearised system
+    e_i + J_i dx_i. One pass is the EKF; more matter when the prior is far off (a start
+    hundreds of metres out collapses the covariance in one step otherwise). The NIS is the
+    first pass's (at the prior, as the gate)."""
+    dx = np.zeros(eskf.N_STATES)
+    first: eskf.Update | None = None
+    up = None
+    for _ in range(IEKF_MAX_ITERATIONS):
+        e, j, _ = _crater_system(eskf.inject(x, dx), m, opts)
+        e, j = e.reshape(-1), j.reshape(-1, 6)
+        up = eskf.information_update(p, POSE, e + j @ dx[POSE], j)
+        first = first or up
+        step = up.dx - dx
+        dx = up.dx
+        if float(np.linalg.norm(step[:3])) < IEKF_STEP_TOL:
+            break
+    assert up is not None and first is not None
+    return eskf.Update(up.dx, up.p, first.nis)
+
+
+def _subset(m: CraterFrame, keep: np.ndarray) -> CraterFrame:
+    """The frame's craters that passed the gate (rows as `_crater_system` keeps them)."""
+    ok = (np.all(np.isfinite(m.c_mci_m), axis=1) & np.all(np.isfinite(m.u_body), axis=1)
+          & ~np.isinf(m.rho_m))
+    rows = np.flatnonzero(ok)[keep]
+
+    def pick(sigma: float | np.ndarray | None) -> float | np.ndarray | None:
+        return sigma if sigma is None or np.ndim(sigma) == 0 else np.asarray(sigma)[rows]
+
+    return CraterFrame(m.t_s, m.frame, m.c_mci_m[rows], m.u_body[rows], m.rho_m[rows],
+                       pick(m.sigma_bearing), pick(m.sigma_range_m))
 
 
 def _crater_system(x: NavState, m: CraterFrame, opts: FilterOptions
