@@ -13,14 +13,15 @@ vertical and the Sun, and the centre of an ellipse fitted to the projected rim p
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from scipy import stats
 from scipy.spatial.transform import Rotation
+from test_detection import Craters, make_craters, unit_of
 
-from pipeline.core import camera, conics, sensor, tiling
+from pipeline.core import camera, conics, sensor
 from pipeline.core.constants import MOON_RADIUS_M as R
 from pipeline.core.detection import (
     PHYSICAL_COLUMNS,
@@ -54,27 +55,6 @@ MODEL = DetectionModel(
 
 
 # --- helpers -------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Craters:
-    crater_id: np.ndarray
-    diam_km: np.ndarray
-    r_mcmf_m: np.ndarray
-    index: tiling.TileIndex
-
-
-def unit_of(lat_deg, lon_deg) -> np.ndarray:
-    lat, lon = np.radians(lat_deg), np.radians(lon_deg)
-    return np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], axis=-1)
-
-
-def make_craters(unit: np.ndarray, diam_km: np.ndarray, crater_id: np.ndarray) -> Craters:
-    """A catalogue in the layout of `load_catalogue`: rows sorted by tile, with its index."""
-    tiles = tiling.tile_of(unit, ORDER)
-    order = np.lexsort((crater_id, tiles))
-    return Craters(crater_id[order], diam_km[order], unit[order] * R,
-                   tiling.TileIndex.build(unit[order], tiles[order], ORDER))
 
 
 def pose(alt_m: float, tilt_deg: float = 0.0, tilt_axis_deg: float = 0.0, lat_deg: float = 0.13,
