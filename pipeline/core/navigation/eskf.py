@@ -85,7 +85,7 @@ def error_dynamics(x: NavState, omega_body_rad_s: np.ndarray, f_body_m_s2: np.nd
     return f
 
 
-def noise_density(x: NavState, noise: ProcessNoise) -> np.ndarray:
+def noise_density(noise: ProcessNoise) -> np.ndarray:
     """G Qc G^T (15, 15): the continuous process noise on the error states (isotropic white
     noises, so the rotation of the accelerometer noise into MCI leaves it unchanged)."""
     q = np.zeros(N_STATES)

@@ -265,7 +265,7 @@ def _propagate(x: NavState, p: np.ndarray, t_a: float, t_b: float, imu: ImuSampl
     mid = path_midpoint(path, x)
     f = eskf.error_dynamics(mid, dtheta.sum(axis=0) / span, dv.sum(axis=0) / span,
                             gravity_gradient(mid.r_mci_m))
-    phi, qd = eskf.discretise(f, eskf.noise_density(x, opts.noise), span)
+    phi, qd = eskf.discretise(f, eskf.noise_density(opts.noise), span)
     p_new = phi @ p @ phi.T + qd
     return x_new, 0.5 * (p_new + p_new.T), phi
 
