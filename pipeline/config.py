@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import camera, orbit, synthetic
+from pipeline.core import camera, orbit, sensor, synthetic
 from pipeline.core.constants import MOON_RADIUS_M
 from pipeline.core.navigation import imu
 from pipeline.errors import ConfigError
@@ -768,6 +768,27 @@ class RunConfig:
         assumed = self.navigation.assumed_altimeter_sigma_m
         a = self.altimeter
         return a.sigma_m + a.sigma_share * rho_m if assumed is None else assumed
+
+    def sensor_noise(self, navigator: bool) -> sensor.SensorNoise | None:
+        """The physical sensor's noise (None for the paper's sensor): as the navigator assumes it
+        (its assumed pixel noise and range noise, and the catalogue's errors when it weighs
+        them), or the truth's measurement noise (the bound's: the catalogue's errors are the
+        world's, not noise, and the bound is computed at the world's craters)."""
+        d, e = self.detection, self.estimation
+        if d.sensor != "physical":
+            return None
+        none = sensor.CatalogueErrors(0.0, 0.0, 0.0)
+        if not navigator:
+            return sensor.SensorNoise(d.pixel_sigma_px, d.pixel_camera().fx_px, d.range_source,
+                                      d.sigma_range_m, none)
+        sigma_px = (d.pixel_sigma_px if e.assumed_pixel_sigma_px is None
+                    else e.assumed_pixel_sigma_px)
+        catalogue = (sensor.CatalogueErrors(d.catalogue_sigma_horizontal_m,
+                                            d.catalogue_sigma_height_m,
+                                            d.catalogue_sigma_diameter_share)
+                     if e.catalogue_sigmas == "truth" else none)
+        return sensor.SensorNoise(sigma_px, d.pixel_camera().fx_px, d.range_source,
+                                  self.navigator_sigmas()[1], catalogue)
 
     def navigator_sigmas(self) -> tuple[float, float]:
         """(sigma_bearing ~rad, sigma_range_m m) the estimators assume: estimation.assumed_sigma_*,

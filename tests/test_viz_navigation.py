@@ -13,6 +13,7 @@ import polars as pl
 import pytest
 import rerun as rr
 from scipy.stats import chi2
+from test_viz import blueprint_columns, columns, series, views
 
 from pipeline.viz import recording
 
@@ -117,13 +118,7 @@ def sensor_tables(n: int = N) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame,
 
 
 def read(path: Path, contents: str, index: str | None = "sim_time") -> dict[str, list]:
-    table = rr.chunk.RrdReader(path).stream().collect().reader(
-        index=index, contents=contents).to_arrow_table()
-    return {name: table.column(name).to_pylist() for name in table.column_names}
-
-
-def series(cols: dict[str, list], entity: str) -> np.ndarray:
-    return np.array([np.nan if v is None else v[0] for v in cols[f"{entity}:Scalars:scalars"]])
+    return columns(path, contents, index)
 
 
 def seconds(cols: dict[str, list]) -> np.ndarray:
@@ -311,21 +306,8 @@ def test_frames_at_matches_times_within_a_microsecond():
 def test_navigation_layout_has_its_views(tmp_path):
     path = tmp_path / "layout.rbl"
     recording.blueprint().save(recording.APP_ID, path)
-    reader = rr.chunk.RrdReader(path)
-    [bp] = reader.blueprints()
-    table = reader.stream(store=bp).collect().reader(index="blueprint",
-                                                     contents="/**").to_arrow_table()
-    views: dict[str, dict[str, object]] = {}
-    for name in table.column_names:
-        values = [v for v in table.column(name).to_pylist() if v is not None]
-        if not name.startswith("/view/") or not values:
-            continue
-        view_id = name.split("/")[2].split(":")[0]
-        for key, suffix in (("name", ":ViewBlueprint:display_name"),
-                            ("origin", ":ViewBlueprint:space_origin")):
-            if name.endswith(suffix):
-                views.setdefault(view_id, {})[key] = values[0][0]
-    origin = {v["name"]: v["origin"] for v in views.values()}
+    origin = {v["name"][0]: v["origin"][0] for v in views(blueprint_columns(path)).values()
+              if "name" in v and "origin" in v}
     assert origin["position error MCI x (m)"] == "/navigation/errors/position_m/x"
     assert origin["attitude error body z (deg)"] == "/navigation/errors/attitude_deg/z"
     assert origin["NEES per block (3 dof)"] == "/navigation/nees"

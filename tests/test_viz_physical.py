@@ -13,6 +13,7 @@ import numpy as np
 import polars as pl
 import pytest
 import rerun as rr
+from test_viz import blueprint_columns, columns, views
 
 from pipeline.core import camera, conics, rotations
 from pipeline.core.detection import DetectionModel
@@ -152,12 +153,6 @@ def paper_rrd(tmp_path_factory) -> Path:
 
 
 # --- reading back -------------------------------------------------------------------------------
-
-
-def columns(path: Path, contents: str, index: str | None = "frame") -> dict[str, list]:
-    table = rr.chunk.RrdReader(path).stream().collect().reader(
-        index=index, contents=contents).to_arrow_table()
-    return {name: table.column(name).to_pylist() for name in table.column_names}
 
 
 def entities(path: Path) -> set[str]:
@@ -348,20 +343,9 @@ def test_camera_points_are_crater_discs_without_ellipses_and_dots_with_them(pape
 def test_layout_has_the_sun_and_gsd_plots_without_new_origins(tmp_path):
     path = tmp_path / "layout.rbl"
     recording.blueprint().save(recording.APP_ID, path)
-    reader = rr.chunk.RrdReader(path)
-    [bp] = reader.blueprints()
-    table = reader.stream(store=bp).collect().reader(index="blueprint",
-                                                     contents="/**").to_arrow_table()
-    cols = {n: [v for v in table.column(n).to_pylist() if v is not None]
-            for n in table.column_names}
-    views: dict[str, dict[str, list]] = {}
-    for name, values in cols.items():
-        if name.startswith("/view/") and values:
-            views.setdefault(name.split("/")[2].split(":")[0], {})[name.rsplit(":", 1)[1]] = \
-                values[0]
-    by_name = {v["display_name"][0]: v for v in views.values() if "display_name" in v}
+    by_name = {v["name"][0]: v for v in views(blueprint_columns(path)).values() if "name" in v}
     sun = by_name["Sun elevation at the sub-spacecraft point (deg)"]
     gsd = by_name["ground sample distance (m/px)"]
-    assert sun["query"] == [recording.SUN_ELEVATION_ENTITY]
-    assert gsd["query"] == [recording.GSD_ENTITY]
-    assert sun["space_origin"] == gsd["space_origin"] == ["/trajectory"]
+    assert sun["contents"] == [recording.SUN_ELEVATION_ENTITY]
+    assert gsd["contents"] == [recording.GSD_ENTITY]
+    assert sun["origin"] == gsd["origin"] == ["/trajectory"]

@@ -10,7 +10,6 @@ import polars as pl
 from pipeline.config import RunConfig
 from pipeline.core.constants import MOON_RADIUS_M
 from pipeline.core.estimators import CheckOptions, RobustOptions
-from pipeline.core.sensor import CatalogueErrors, SensorNoise
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.estimate import EstimateOptions, UsedCraters, estimate_all
@@ -29,21 +28,7 @@ def options(cfg: RunConfig) -> EstimateOptions:
         step_tol_m=e.step_tol_m, max_iterations=e.max_iterations, robust=robust,
         checks=CheckOptions(consistency_probability=e.consistency_probability,
                             max_condition=e.max_condition, moon_radius_m=MOON_RADIUS_M),
-        cap=d.max_craters, sensor_noise=navigator_sensor_noise(cfg))
-
-
-def navigator_sensor_noise(cfg: RunConfig) -> SensorNoise | None:
-    """The physical sensor's noise as the navigator assumes it (None for the paper's sensor):
-    the assumed pixel noise, and the catalogue's errors when it accounts for them."""
-    d, e = cfg.detection, cfg.estimation
-    if d.sensor != "physical":
-        return None
-    sigma_px = d.pixel_sigma_px if e.assumed_pixel_sigma_px is None else e.assumed_pixel_sigma_px
-    catalogue = (CatalogueErrors(d.catalogue_sigma_horizontal_m, d.catalogue_sigma_height_m,
-                                 d.catalogue_sigma_diameter_share)
-                 if e.catalogue_sigmas == "truth" else CatalogueErrors(0.0, 0.0, 0.0))
-    return SensorNoise(sigma_px, d.pixel_camera().fx_px, d.range_source,
-                       cfg.navigator_sigmas()[1], catalogue)
+        cap=d.max_craters, sensor_noise=cfg.sensor_noise(navigator=True))
 
 
 def run(ctx: StageContext) -> StageResult:

@@ -19,7 +19,6 @@ from pipeline.core.navigation.filter import FilterOptions
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.estimate import UsedCraters
 from pipeline.ops.navigate import NavigateOptions, navigate, process_noise
-from pipeline.stages.estimate import navigator_sensor_noise
 from pipeline.viz import recording
 
 
@@ -39,7 +38,7 @@ def options(cfg: RunConfig) -> NavigateOptions:
         init_sigma_position_m=n.init_sigma_position_m,
         init_sigma_velocity_m_s=n.init_sigma_velocity_m_s,
         init_sigma_attitude_rad=float(np.radians(n.init_sigma_attitude_deg)),
-        outage_s=outage, sensor_noise=navigator_sensor_noise(cfg), imu=assumed_imu,
+        outage_s=outage, sensor_noise=cfg.sensor_noise(navigator=True), imu=assumed_imu,
         altimeter_sigma=altimeter_sigma,
         consistency_probability=cfg.estimation.consistency_probability,
         imu_rate_hz=cfg.imu.rate_hz,

@@ -14,7 +14,6 @@ import numpy as np
 import polars as pl
 
 from pipeline.config import RunConfig
-from pipeline.core.sensor import CatalogueErrors, SensorNoise
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.errors import StageInputError
@@ -53,16 +52,6 @@ def catalogue_lookup(db_path: Path) -> CraterLookup:
     return lookup
 
 
-def true_sensor_noise(cfg: RunConfig) -> SensorNoise | None:
-    """The physical sensor's true measurement noise (the bound's; the catalogue's errors are the
-    world's, not noise, and the bound is computed at the world's craters)."""
-    d = cfg.detection
-    if d.sensor != "physical":
-        return None
-    return SensorNoise(d.pixel_sigma_px, d.pixel_camera().fx_px, d.range_source,
-                       d.sigma_range_m, CatalogueErrors(0.0, 0.0, 0.0))
-
-
 def run(ctx: StageContext) -> StageResult:
     cfg, tx = ctx.cfg, ctx.tx
     trajectory = pl.read_parquet(ctx.input("trajectory.parquet"))
@@ -75,7 +64,8 @@ def run(ctx: StageContext) -> StageResult:
     d = cfg.detection
     with progress_bar("Cramér-Rao bound", trajectory.height) as advance:
         scores = score_run(trajectory, detections, estimates, catalogue_lookup(db),
-                           d.sigma_bearing, d.sigma_range_m, advance, true_sensor_noise(cfg))
+                           d.sigma_bearing, d.sigma_range_m, advance,
+                           cfg.sensor_noise(navigator=False))
     wins = windows(cfg.scoring, t_impact)
     summary = summarize(scores, wins)
     by_used = report.by_craters_used(scores)

@@ -14,29 +14,15 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
+from test_bearings_only import make_frame
 
 from pipeline.core import estimators as est
-from pipeline.core import frames, measurement
-from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core import measurement
 
 SIGMA_B = 1e-4
 SIGMA_R = 10.0
 TAN_EDGE = np.tan(np.radians(22.5))
 ROBUST = est.RobustOptions(gate_probability=0.9999, max_hypotheses=64, confidence=0.999)
-
-
-def make_frame(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Nadir camera 10-250 km up, square 45 deg field, craters on the sphere (see
-    test_bearings_only)."""
-    up = rng.standard_normal(3)
-    up /= np.linalg.norm(up)
-    r = (MOON_RADIUS_M + rng.uniform(10e3, 250e3)) * up
-    dcm = frames.dcm_mci_from_orbit(r, np.cross(up, rng.standard_normal(3)))
-    rays = np.concatenate([rng.uniform(-TAN_EDGE, TAN_EDGE, (n, 2)), np.ones((n, 1))], axis=1)
-    rays = (rays / np.linalg.norm(rays, axis=1, keepdims=True)) @ dcm.T
-    od = rays @ r
-    t = -od - np.sqrt(od**2 - (r @ r - MOON_RADIUS_M**2))
-    return r, dcm, r + t[:, None] * rays
 
 
 def physical_sigmas(u_body: np.ndarray, rho_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

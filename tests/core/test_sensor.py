@@ -20,6 +20,7 @@ import pytest
 from scipy import stats
 from scipy.spatial.transform import Rotation
 from test_detection import Craters, make_craters, unit_of
+from test_detection import pose as detection_pose
 
 from pipeline.core import camera, conics, sensor
 from pipeline.core.constants import MOON_RADIUS_M as R
@@ -59,15 +60,8 @@ MODEL = DetectionModel(
 
 def pose(alt_m: float, tilt_deg: float = 0.0, tilt_axis_deg: float = 0.0, lat_deg: float = 0.13,
          lon_deg: float = -0.07) -> tuple[np.ndarray, np.ndarray]:
-    """Spacecraft position (MCMF) and dcm_body_from_mcmf: nadir boresight, then tilted."""
-    r = (R + alt_m) * unit_of(lat_deg, lon_deg)
-    z = -r / np.linalg.norm(r)
-    x = np.cross([0.0, 0.0, 1.0], z)
-    x /= np.linalg.norm(x)
-    az = np.radians(tilt_axis_deg)
-    tilt = Rotation.from_rotvec(np.radians(tilt_deg) * np.array([np.cos(az), np.sin(az), 0.0]))
-    dcm_mcmf_from_body = np.stack([x, np.cross(z, x), z], axis=1) @ tilt.as_matrix()
-    return r, dcm_mcmf_from_body.T
+    """`test_detection.pose` over this file's field (near 0 N, 0 E)."""
+    return detection_pose(alt_m, tilt_deg, tilt_axis_deg, lat_deg, lon_deg)
 
 
 def sun_at(r: np.ndarray, incidence_deg: float) -> np.ndarray:

@@ -90,22 +90,23 @@ def gauss_newton_position(c_mci_m: np.ndarray, rho_m: np.ndarray, r0_mci_m: np.n
     x = np.array(r0_mci_m, dtype=float)
     sigma = np.asarray(sigma_range_m, dtype=float)
     if sigma.ndim == 0:  # every residual of weight 1 (exact: the scale is 1.0)
-        return _weighted_gauss_newton(c, rho, x, step_tol_m, max_iterations, np.ones(rho.size),
-                                      float(sigma))
+        return _weighted_gauss_newton(c, rho, x, step_tol_m, max_iterations, None, float(sigma))
     return _weighted_gauss_newton(c, rho, x, step_tol_m, max_iterations,
                                   float(sigma.min()) / sigma, float(sigma.min()))
 
 
 def _weighted_gauss_newton(c: np.ndarray, rho: np.ndarray, x: np.ndarray, step_tol_m: float,
-                           max_iterations: int, s: np.ndarray, scale: float
+                           max_iterations: int, s: np.ndarray | None, scale: float
                            ) -> tuple[np.ndarray, np.ndarray, int, str]:
     """`gauss_newton_position`'s iteration on the residuals scaled by s (n,) (s_j = min(sigma) /
-    sigma_j, so the best range keeps weight 1 and the rounding floor its meaning; all 1 for one
+    sigma_j, so the best range keeps weight 1 and the rounding floor its meaning; None: one
     sigma), covariance scale^2 (J^T S^2 J)^-1 with scale = min(sigma) (m)."""
     nan_x, nan_cov = np.full(3, np.nan), np.full((3, 3), np.nan)
     for k in range(1, max_iterations + 1):
         w, rng_m = line_of_sight(x, c)
-        ws = w * (s * s)[:, None]
+        # one sigma: w itself, so w^T w is the symmetric product numpy computes for it (a
+        # weighted copy would round differently)
+        ws = w if s is None else w * (s * s)[:, None]
         h = w.T @ ws
         h_inv = _sym3_inverse(h)
         if h_inv is None:
@@ -115,7 +116,8 @@ def _weighted_gauss_newton(c: np.ndarray, rho: np.ndarray, x: np.ndarray, step_t
         step_m = math.sqrt(float(step @ step))
         if not math.isfinite(step_m):
             return nan_x, nan_cov, k, Status.DEGENERATE.value
-        floor = ROUNDING_FACTOR * EPS * float((rng_m * s).max()) * math.sqrt(h_inv.trace())
+        scaled = rng_m if s is None else rng_m * s
+        floor = ROUNDING_FACTOR * EPS * float(scaled.max()) * math.sqrt(h_inv.trace())
         if step_m <= max(step_tol_m, floor):
             h_inv = inverse_if_well_conditioned(h)
             if h_inv is None:

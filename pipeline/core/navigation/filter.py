@@ -356,11 +356,15 @@ def _iterated_crater_update(x: NavState, p: np.ndarray, m: CraterFrame, opts: Fi
     return eskf.Update(up.dx, up.p, first.nis)
 
 
+def _usable(m: CraterFrame) -> np.ndarray:
+    """Rows (N,) with a finite position and bearing and no infinite range (NaN: no range)."""
+    return (np.all(np.isfinite(m.c_mci_m), axis=1) & np.all(np.isfinite(m.u_body), axis=1)
+            & ~np.isinf(m.rho_m))
+
+
 def _subset(m: CraterFrame, keep: np.ndarray) -> CraterFrame:
     """The frame's craters that passed the gate (rows as `_crater_system` keeps them)."""
-    ok = (np.all(np.isfinite(m.c_mci_m), axis=1) & np.all(np.isfinite(m.u_body), axis=1)
-          & ~np.isinf(m.rho_m))
-    rows = np.flatnonzero(ok)[keep]
+    rows = np.flatnonzero(_usable(m))[keep]
 
     def pick(sigma: float | np.ndarray | None) -> float | np.ndarray | None:
         return sigma if sigma is None or np.ndim(sigma) == 0 else np.asarray(sigma)[rows]
@@ -373,9 +377,8 @@ def _crater_system(x: NavState, m: CraterFrame, opts: FilterOptions
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Whitened residuals (N, 4) and Jacobians (N, 4, 6) over [dr, dtheta] of a frame's craters
     (the shared measurement model) and each one's degrees of freedom (3, or 2 without a range);
-    rows with a non-finite position or bearing, or an infinite range, dropped."""
-    ok = (np.all(np.isfinite(m.c_mci_m), axis=1) & np.all(np.isfinite(m.u_body), axis=1)
-          & ~np.isinf(m.rho_m))
+    rows with a non-finite position or bearing, or an infinite range, dropped (`_usable`)."""
+    ok = _usable(m)
     sigma_b = opts.sigma_bearing if m.sigma_bearing is None else measurement.per_crater(
         m.sigma_bearing, ok)
     sigma_r = opts.sigma_range_m if m.sigma_range_m is None else measurement.per_crater(
