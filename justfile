@@ -62,9 +62,15 @@ sql *args:
 view run="default" *args:
     {{py}} view "$@"
 
-# the test suite (uses both cores: one pytest worker each, single-threaded BLAS so they do not fight)
+# the test suite (uses both cores: one pytest worker each, single-threaded BLAS so they do not
+# fight), but the tests marked slow (long end-to-end and real-catalogue checks: `just test-slow`,
+# both run in CI)
 test *args:
-    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 python -m pytest -n 2 --dist loadscope "$@"
+    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 python -m pytest -n 2 --dist loadscope -m "not slow" "$@"
+
+# the tests marked slow
+test-slow *args:
+    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 python -m pytest -n 2 --dist loadscope -m slow "$@"
 
 # benchmarks: figures printed and saved to runs/bench/
 bench *args:

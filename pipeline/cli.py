@@ -258,8 +258,10 @@ def stages() -> None:
     for name in DAG.order:
         s = DAG[name]
         upstream = ", ".join(DAG.upstream[name]) or "-"
+        optional = (f"  optional inputs (some configs): {', '.join(s.optional_inputs)} (from "
+                    f"{', '.join(DAG.optional_upstream[name])})\n" if s.optional_inputs else "")
         typer.echo(f"{name}: {s.doc}\n  config:  {', '.join(s.reads)}\n"
-                   f"  inputs:  {', '.join(s.inputs) or '-'} (from {upstream})\n"
+                   f"  inputs:  {', '.join(s.inputs) or '-'} (from {upstream})\n{optional}"
                    f"  outputs: {', '.join(s.outputs)}\n  code:    {', '.join(closure(s.code))}")
 
 

@@ -47,6 +47,7 @@ SENSORS = ("paper", "physical")
 BEARING_SOURCES = ("ellipse_centre", "corrected")
 RANGE_SOURCES = ("per_crater", "apparent_size", "none")
 CATALOGUE_SIGMAS = ("ignore", "truth")
+IDENTIFICATION_MODES = ("simulated", "tracking", "lost_in_space", "tracking_lis")
 
 DIAM_UNITS = ("km", "m")
 
@@ -354,6 +355,7 @@ class DetectionConfig:
     catalogue_sigma_height_m: float
     catalogue_sigma_diameter_share: float
     world_seed: int  # the catalogue errors' seed (the world is fixed: shared by every run)
+    false_detection_share: float  # physical: extra random ellipses, a share of the true ones
 
     def __post_init__(self) -> None:
         k = "detection."
@@ -407,6 +409,10 @@ class DetectionConfig:
         _num(self.catalogue_sigma_height_m, k + "catalogue_sigma_height_m", 0.0, 1e5, unit="m")
         _num(self.catalogue_sigma_diameter_share, k + "catalogue_sigma_diameter_share", 0.0, 0.5)
         _num(self.world_seed, k + "world_seed", 0, MAX_SEED)
+        _num(self.false_detection_share, k + "false_detection_share", 0.0, 10.0)
+        if self.sensor == "paper":
+            _check(self.false_detection_share == 0.0, k + "false_detection_share",
+                   "needs sensor = \"physical\" (false detections are ellipses)")
 
     def pixel_camera(self) -> camera.PixelCamera:
         """The physical sensor's camera: the field of view, the image size, the distortion."""
@@ -642,6 +648,40 @@ class NavigationConfig:
 
 
 @dataclass(frozen=True)
+class IdentificationConfig:
+    """Crater identification (stage `detect`): the paper's coin flip, or matching the detected
+    ellipses to the catalogue by tracking (a prior pose from the navigation filter) and by lost
+    in space (an index of crater-pair invariants, attitude from a star tracker)."""
+
+    mode: str  # simulated | tracking | lost_in_space | tracking_lis
+    gate_probability: float  # chi-square gate (5 dof) on the ellipse parameters
+    track_max_sigma_px: float  # tracking while the prior's ellipse-centre 1-sigma is below this
+    lost_after_frames: int  # tracking_lis: failed tracking frames in a row before lost in space
+    prior_radius_km: float  # lost in space: search radius around the rough position
+    rough_position_error_m: float  # lost in space without a filter: the rough position's error
+    star_tracker_sigma_arcsec: float  # lost in space: the attitude's noise per axis
+    query_detections: int  # lost in space: the largest detections queried
+    min_matches: int  # lost in space: verified craters a fix needs
+    index_dir: str  # where the invariant indexes are kept; relative: to the project root
+
+    def __post_init__(self) -> None:
+        k = "identification."
+        _check(self.mode in IDENTIFICATION_MODES, k + "mode",
+               f"= {self.mode!r}: must be one of {IDENTIFICATION_MODES}")
+        _num(self.gate_probability, k + "gate_probability", 0.0, 1.0, lo_open=True,
+             hi_open=True)
+        _num(self.track_max_sigma_px, k + "track_max_sigma_px", 0.1, 1000.0, unit="px")
+        _num(self.lost_after_frames, k + "lost_after_frames", 1, 10_000)
+        _num(self.prior_radius_km, k + "prior_radius_km", 0.1, 2000.0, unit="km")
+        _num(self.rough_position_error_m, k + "rough_position_error_m", 0.0, 1e6, unit="m")
+        _num(self.star_tracker_sigma_arcsec, k + "star_tracker_sigma_arcsec", 0.0, 3600.0,
+             unit="arcsec")
+        _num(self.query_detections, k + "query_detections", 3, 100)
+        _num(self.min_matches, k + "min_matches", 3, 1000)
+        _check(bool(self.index_dir.strip()), k + "index_dir", "must not be empty")
+
+
+@dataclass(frozen=True)
 class Window:
     """A scoring window [start_s, end_s) of simulation time."""
 
@@ -725,6 +765,7 @@ class RunConfig:
     imu: ImuConfig
     altimeter: AltimeterConfig
     navigation: NavigationConfig
+    identification: IdentificationConfig
     scoring: ScoringConfig
     sweep: SweepConfig
 
@@ -742,6 +783,9 @@ class RunConfig:
             _check(not (n.loose_method == "paper" and self.detection.range_source == "none"),
                    "navigation.loose_method", "= 'paper' needs ranges (detection.range_source "
                    "= \"none\"): use \"joint\"")
+        _check(self.identification.mode == "simulated" or self.detection.sensor == "physical",
+               "identification.mode", f"= {self.identification.mode!r} matches rim ellipses: it "
+               "needs detection.sensor = \"physical\"")
         # Cross-section: what the scoring needs of the trajectory (known without thrust).
         impact = self.trajectory.ballistic_impact_s()
         if impact is not None:
@@ -756,6 +800,15 @@ class RunConfig:
             _check(n <= MAX_IMU_SAMPLES, "imu.rate_hz",
                    f"= {self.imu.rate_hz:g} Hz over the {impact:.0f} s descent makes {n:.3g} "
                    f"samples, above the limit of {MAX_IMU_SAMPLES:,}")
+
+    @property
+    def identification_navigator(self) -> dict[str, Any] | None:
+        """What identification's filter reads of the navigator (navigation, the IMU and the
+        altimeter), or None when identification is the coin flip (which needs none of it)."""
+        if self.identification.mode == "simulated":
+            return None
+        return {name: dataclasses.asdict(getattr(self, name))
+                for name in ("navigation", "imu", "altimeter", "estimation")}
 
     def navigator_imu(self) -> imu.ImuGrade:
         """The IMU error model the filter assumes: navigation.assumed_imu_grade's preset, or the

@@ -155,7 +155,15 @@ def test_the_dag_follows_from_the_declarations():
                                                   "estimate", "navigate", "score"]
     assert DAG.upstream_closure([SWEEP_TARGET]) == ["ingest", "trajectory", "sweep"]
     assert DAG.downstream_of("detect") == ["detect", "estimate", "navigate", "score"]
-    assert DAG.downstream_of("imu") == ["imu", "navigate", "score"]
+    assert DAG.downstream_of("imu") == ["imu", "detect", "estimate", "navigate", "score"]
+    # detect reads the IMU only when identification runs the navigation filter
+    cfg = load_config("default")
+    assert DAG.downstream_of("imu", cfg) == ["imu", "navigate", "score"]
+    assert DAG.upstream_for("detect", cfg) == ("ingest", "trajectory")
+    tracking = load_config("identify")
+    assert set(DAG.upstream_for("detect", tracking)) == {"ingest", "trajectory", "imu"}
+    assert DAG.downstream_of("imu", tracking) == ["imu", "detect", "estimate", "navigate",
+                                                  "score"]
     assert DAG.producer["catalogue.json"] == "ingest"
 
 
@@ -571,6 +579,7 @@ def _identity(x: int) -> int:
     return x
 
 
+@pytest.mark.slow
 def test_a_failing_worker_initializer_is_reported_not_a_broken_pool():
     """A worker whose initializer fails (the catalogue was replaced, memory) reports that error
     through its first task, instead of breaking the pool with a lost message."""

@@ -224,4 +224,5 @@ def crater_centres_cam(conic: np.ndarray, k: np.ndarray, up_cam: np.ndarray,
     uqu = np.einsum("...i,...ij,...j->...", u, q, u)
     nqn = np.einsum("...i,...ij,...j->...", n, q, n)
     rho2 = -uqu / (0.5 * (np.trace(q, axis1=-2, axis2=-1) - nqn))
-    return (np.asarray(radius_m, dtype=float) / np.sqrt(rho2))[..., None] * u
+    with np.errstate(invalid="ignore"):  # no real circle on that plane (not a rim's conic): NaN
+        return (np.asarray(radius_m, dtype=float) / np.sqrt(rho2))[..., None] * u

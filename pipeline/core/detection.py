@@ -79,8 +79,8 @@ class DetectionModel:
 class FrameDetections:
     """A frame's visible craters (rows into the catalogue, sorted by crater id) and counts."""
 
-    row: np.ndarray  # (n,) catalogue row of the crater actually seen
-    matched_row: np.ndarray  # (n,) catalogue row it was identified as (== row unless false match)
+    row: np.ndarray  # (n,) catalogue row of the crater actually seen (-1: a false detection)
+    matched_row: np.ndarray  # (n,) catalogue row it was identified as (-1: none)
     u_true_body: np.ndarray  # (n, 3)
     rho_true_m: np.ndarray  # (n,)
     u_meas_body: np.ndarray  # (n, 3)
@@ -95,16 +95,19 @@ class FrameDetections:
 
     @property
     def false_match(self) -> np.ndarray:
-        return self.row != self.matched_row
+        """Identified as another catalogue crater than the one seen (or as one, when none was:
+        a false detection, row -1)."""
+        return (self.matched_row >= 0) & (self.row != self.matched_row)
 
 
 def frame_rngs(seed: int, frame: int) -> dict[str, np.random.Generator]:
-    """Independent generators of one frame: identify, match, select, noise, and the physical
-    sensor's detect (later children of the same SeedSequence: the first four are unchanged)."""
+    """Independent generators of one frame: identify, match, select, noise; the physical
+    sensor's detect and false detections; identification's star tracker and verification (later
+    children of the same SeedSequence: the earlier ones are unchanged)."""
     ss = np.random.SeedSequence(entropy=seed, spawn_key=(_STREAM_TAG, frame))
-    names = ("identify", "match", "select", "noise", "detect")
-    return {n: np.random.Generator(np.random.PCG64(s)) for n, s in zip(names, ss.spawn(5),
-                                                                        strict=True)}
+    names = ("identify", "match", "select", "noise", "detect", "false", "star", "verify")
+    return {n: np.random.Generator(np.random.PCG64(s))
+            for n, s in zip(names, ss.spawn(len(names)), strict=True)}
 
 
 def detect_frame(model: DetectionModel, craters: CraterArrays, r_mcmf_m: np.ndarray,
@@ -115,16 +118,14 @@ def detect_frame(model: DetectionModel, craters: CraterArrays, r_mcmf_m: np.ndar
     """Detection model of one frame at spacecraft position r_mcmf_m (3,) and attitude; the
     physical sensor also needs the Sun's position sun_mcmf_m (3,) (m, Moon-centred MCMF) and
     the world's craters (`sensor.world_craters` of the whole catalogue, aligned with it)."""
-    boresight = dcm_body_from_mcmf[2]  # body +z in MCMF (the paper's camera is the body)
-    if model.physical is not None:  # the mounted camera's +z
-        boresight = model.physical.camera.dcm_body_from_cam[:, 2] @ dcm_body_from_mcmf
-    centre, radius = camera.coverage_cap(r_mcmf_m, boresight, model.fov, model.moon_radius_m)
-    rows = tiling.query_cap(craters.index, centre, radius)
     if model.physical is not None:
         if sun_mcmf_m is None or world is None:
             raise ValueError("the physical sensor needs the Sun's position and the world")
-        return _detect_physical(model, model.physical, craters, world, rows, r_mcmf_m,
+        return _detect_physical(model, model.physical, craters, world, r_mcmf_m,
                                 dcm_body_from_mcmf, rngs, sun_mcmf_m)
+    boresight = dcm_body_from_mcmf[2]  # body +z in MCMF (the paper's camera is the body)
+    centre, radius = camera.coverage_cap(r_mcmf_m, boresight, model.fov, model.moon_radius_m)
+    rows = tiling.query_cap(craters.index, centre, radius)
     c = craters.r_mcmf_m[rows]
     p_body = (c - r_mcmf_m) @ dcm_body_from_mcmf.T
     in_view = model.fov.contains(p_body) & camera.on_visible_side(c, r_mcmf_m)
@@ -165,14 +166,32 @@ def _corners(model: DetectionModel, r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np
     return r_mcmf_m + dist[:, None] * corner_rays
 
 
-def _detect_physical(model: DetectionModel, phys: PhysicalSensor, craters: CraterArrays,
-                     world: sensor.World, rows: np.ndarray, r_mcmf_m: np.ndarray,
-                     dcm_body_from_mcmf: np.ndarray, rngs: dict[str, np.random.Generator],
-                     sun_mcmf_m: np.ndarray) -> FrameDetections:
-    """The physical sensor's frame: true rims (the world, not the catalogue) imaged as ellipses,
-    detected by size and lighting, measured with pixel noise; bearings and ranges from the
-    measured ellipses (`pipeline.core.sensor`)."""
+@dataclass(frozen=True)
+class SensedFrame:
+    """What the physical sensor detected in one frame, before identification: the measured rim
+    ellipses, and the truth kept apart (the world's craters they came from)."""
+
+    row: np.ndarray  # (n,) catalogue row of each detected world crater, sorted by crater id
+    meas: sensor.EllipseMeasurement  # (n,) measured ellipses (undistorted image, px)
+    true: conics.Ellipses  # (n,) the true rim ellipses
+    p_body_m: np.ndarray  # (n, 3) true crater centres (body axes, m)
+    columns: dict[str, np.ndarray]  # PHYSICAL_COLUMNS but rho_size_m, (n,) each
+    n_candidates: int  # in the field of view and on the visible side, any size
+    corners_mcmf_m: np.ndarray  # (4, 3)
+
+
+def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.World,
+                   r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
+                   rngs: dict[str, np.random.Generator], sun_mcmf_m: np.ndarray) -> SensedFrame:
+    """The physical sensor's detections of one frame: true rims (the world, not the catalogue)
+    imaged as ellipses, detected by size and lighting (draws of rngs["detect"]), measured with
+    pixel noise (rngs["noise"]); no identities (`pipeline.core.sensor`)."""
+    phys = model.physical
+    assert phys is not None
     cam = phys.camera
+    boresight = cam.dcm_body_from_cam[:, 2] @ dcm_body_from_mcmf
+    centre, radius = camera.coverage_cap(r_mcmf_m, boresight, model.fov, model.moon_radius_m)
+    rows = tiling.query_cap(craters.index, centre, radius)
     dcm_cam_from_mcmf = cam.dcm_cam_from_body @ dcm_body_from_mcmf
     c_true, diam_true_m = world.r_mcmf_m[rows], world.diam_m[rows]
     p_body = (c_true - r_mcmf_m) @ dcm_body_from_mcmf.T
@@ -192,15 +211,6 @@ def _detect_physical(model: DetectionModel, phys: PhysicalSensor, craters: Crate
     cos_alpha = p_cam[:, 2] / rho_m
     wide_enough = cam.fx_px * diam_true_m / (rho_m * cos_alpha**2) >= d.min_diameter_px
     keep = np.flatnonzero(in_view & lit & wide_enough)
-    corners = _corners(model, r_mcmf_m, dcm_body_from_mcmf)
-    if keep.size == 0:  # night, or too high: nothing can be detected
-        empty = np.zeros(0)
-        return FrameDetections(
-            row=np.zeros(0, dtype=rows.dtype), matched_row=np.zeros(0, dtype=rows.dtype),
-            u_true_body=np.zeros((0, 3)), rho_true_m=empty, u_meas_body=np.zeros((0, 3)),
-            rho_meas_m=empty, pixel_uv=np.zeros((0, 2)), identified=np.zeros(0, bool),
-            used=np.zeros(0, bool), n_candidates=int(in_view.sum()), d_min_km=float("nan"),
-            corners_mcmf_m=corners, physical={name: empty for name in PHYSICAL_COLUMNS})
     keep = keep[np.argsort(craters.crater_id[rows[keep]], kind="stable")]
     conic = conics.rim_conics(c_true[keep], 0.5 * diam_true_m[keep], r_mcmf_m, dcm_cam_from_mcmf,
                               cam.k)
@@ -220,39 +230,12 @@ def _detect_physical(model: DetectionModel, phys: PhysicalSensor, craters: Crate
     p_detect = np.where(inside, sensor.detection_probability(
         2.0 * np.nan_to_num(a), angles.incidence_rad, angles.emission_rad,
         min(cam.width_px, cam.height_px), phys.detectability), 0.0)
-    detected = rngs["detect"].random(keep.size) < p_detect
+    detected = (rngs["detect"].random(keep.size) < p_detect) if keep.size else np.zeros(0, bool)
     sel = keep[detected]
-    row = rows[sel]
     true_sel = conics.Ellipses(true.centre_px[detected], true.semi_major_px[detected],
                                true.semi_minor_px[detected], true.angle_rad[detected],
                                true.valid[detected])
     meas = sensor.measure_ellipses(rngs["noise"], true_sel, phys.sigma_px)
-    p = p_body[sel]
-    rho_true = np.linalg.norm(p, axis=1)
-    u_true = p / rho_true[:, None]
-
-    identified = identification.identify(rngs["identify"], row.size, model.p_identify)
-    unit = craters.index.unit[row]
-    matched = identification.false_matches(rngs["match"], unit, identified,
-                                           model.false_match_share)
-    # The navigator's rim-plane normal: the vertical of the crater it identified (catalogue),
-    # in camera axes at the attitude (known to arcseconds from a star tracker; its error is
-    # second order in the recovered centre).
-    c_cat = craters.r_mcmf_m[row[matched]]
-    up_cam = (c_cat / np.linalg.norm(c_cat, axis=1, keepdims=True)) @ dcm_cam_from_mcmf.T
-    u_meas = sensor.bearings_body(cam, meas, up_cam if phys.corrected_bearing else None)
-    rho_size = sensor.apparent_size_ranges(cam, meas, up_cam,
-                                           0.5e3 * craters.diam_km[row[matched]])
-    if phys.range_source == "per_crater":
-        rho_meas = rho_true + model.sigma_range_m * rngs["noise"].standard_normal(row.size)
-    elif phys.range_source == "apparent_size":
-        rho_meas = rho_size
-    else:
-        rho_meas = np.full(row.size, np.nan)
-    pixel = cam.project_body(u_meas)
-    used = identification.select_used(rngs["select"], identified, model.max_craters,
-                                      model.selection, craters.diam_km[row], rho_meas, pixel,
-                                      cam.width_px)
     columns = {
         "ellipse_u_px": meas.centre_px[:, 0], "ellipse_v_px": meas.centre_px[:, 1],
         "semi_major_px": meas.semi_major_px, "semi_minor_px": meas.semi_minor_px,
@@ -263,7 +246,6 @@ def _detect_physical(model: DetectionModel, phys: PhysicalSensor, craters: Crate
         "true_semi_minor_px": true_sel.semi_minor_px,
         "true_ellipse_angle_rad": true_sel.angle_rad,
         "apparent_diam_px": 2.0 * true_sel.semi_major_px,
-        "rho_size_m": rho_size,
         "incidence_deg": np.degrees(angles.incidence_rad[detected]),
         "emission_deg": np.degrees(angles.emission_rad[detected]),
         "phase_deg": np.degrees(angles.phase_rad[detected]),
@@ -271,8 +253,78 @@ def _detect_physical(model: DetectionModel, phys: PhysicalSensor, craters: Crate
         "true_diam_km": diam_true_m[sel] / 1e3,
         **{f"c_true_mcmf_{ax}_m": c_true[sel][:, i] for i, ax in enumerate("xyz")},
     }
+    return SensedFrame(rows[sel], meas, true_sel, p_body[sel], columns, int(in_view.sum()),
+                       _corners(model, r_mcmf_m, dcm_body_from_mcmf))
+
+
+def measure_physical(phys: PhysicalSensor, meas: sensor.EllipseMeasurement,
+                     matched_row: np.ndarray, craters: CraterArrays,
+                     dcm_cam_from_mcmf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bearings (n, 3) (body) and apparent-size ranges (n,) (m) of measured ellipses as the
+    navigator derives them from the catalogue craters they were identified as (matched_row, -1:
+    none, then the ellipse centre's bearing and no range). The rim-plane normal is the
+    identified crater's vertical in camera axes at the attitude (known to arcseconds from a star
+    tracker; its error is second order in the recovered centre)."""
+    cam = phys.camera
+    known = matched_row >= 0
+    c_cat = craters.r_mcmf_m[np.where(known, matched_row, 0)]
+    up_cam = (c_cat / np.linalg.norm(c_cat, axis=1, keepdims=True)) @ dcm_cam_from_mcmf.T
+    u_meas = sensor.bearings_body(cam, meas, up_cam if phys.corrected_bearing else None)
+    if not known.all():
+        u_meas[~known] = sensor.bearings_body(cam, meas, None)[~known]
+    rho_size = sensor.apparent_size_ranges(cam, meas, up_cam,
+                                           0.5e3 * craters.diam_km[np.where(known, matched_row, 0)])
+    return u_meas, np.where(known, rho_size, np.nan)
+
+
+def _detect_physical(model: DetectionModel, phys: PhysicalSensor, craters: CraterArrays,
+                     world: sensor.World, r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
+                     rngs: dict[str, np.random.Generator], sun_mcmf_m: np.ndarray
+                     ) -> FrameDetections:
+    """The physical sensor's frame identified by the coin flip (`identification.identify`)."""
+    s = sense_physical(model, craters, world, r_mcmf_m, dcm_body_from_mcmf, rngs, sun_mcmf_m)
+    row = s.row
+    rho_true = np.linalg.norm(s.p_body_m, axis=1)
+    u_true = s.p_body_m / rho_true[:, None]
+    identified = identification.identify(rngs["identify"], row.size, model.p_identify)
+    unit = craters.index.unit[row]
+    matched = identification.false_matches(rngs["match"], unit, identified,
+                                           model.false_match_share)
+    dcm_cam_from_mcmf = phys.camera.dcm_cam_from_body @ dcm_body_from_mcmf
+    u_meas, rho_size = measure_physical(phys, s.meas, row[matched], craters, dcm_cam_from_mcmf)
+    rho_meas = ranges(phys, model.sigma_range_m, rho_true, rho_size, rngs["noise"])
+    pixel = phys.camera.project_body(u_meas)
+    used = identification.select_used(rngs["select"], identified, model.max_craters,
+                                      model.selection, craters.diam_km[row], rho_meas, pixel,
+                                      phys.camera.width_px)
     return FrameDetections(
         row=row, matched_row=row[matched], u_true_body=u_true, rho_true_m=rho_true,
         u_meas_body=u_meas, rho_meas_m=rho_meas, pixel_uv=pixel, identified=identified,
-        used=used, n_candidates=int(in_view.sum()), d_min_km=float("nan"),
-        corners_mcmf_m=corners, physical=columns)
+        used=used, n_candidates=s.n_candidates, d_min_km=float("nan"),
+        corners_mcmf_m=s.corners_mcmf_m,
+        physical={n: rho_size if n == "rho_size_m" else s.columns[n] for n in PHYSICAL_COLUMNS})
+
+
+def ranges(phys: PhysicalSensor, sigma_range_m: float, rho_true_m: np.ndarray,
+           rho_size_m: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The measured ranges (n,) (m) of the range source: a ranging sensor's (true + noise of
+    sigma_range_m), the apparent size's, or none (NaN)."""
+    if phys.range_source == "per_crater":
+        return rho_true_m + sigma_range_m * rng.standard_normal(rho_true_m.size)
+    if phys.range_source == "apparent_size":
+        return rho_size_m
+    return np.full(rho_true_m.size, np.nan)
+
+
+def false_ellipses(rng: np.random.Generator, n_true: int, share: float, width_px: int,
+                   height_px: int, min_diameter_px: float) -> sensor.EllipseMeasurement:
+    """False detections of one frame: Poisson(share x n_true) random ellipses inside the image,
+    diameters log-uniform from min_diameter_px to 8 times it, axis ratio uniform in [0.5, 1],
+    orientation uniform (shadows, boulders, noise a detector mistakes for rims)."""
+    n = int(rng.poisson(share * n_true)) if share > 0 and n_true > 0 else 0
+    a = 0.5 * min_diameter_px * np.exp(rng.uniform(0.0, np.log(8.0), n))
+    b = a * rng.uniform(0.5, 1.0, n)
+    angle = rng.uniform(-0.5 * np.pi, 0.5 * np.pi, n)
+    centre = np.column_stack([rng.uniform(a, width_px - a), rng.uniform(a, height_px - a)])
+    return sensor.EllipseMeasurement(centre.reshape(n, 2), a, b, angle,
+                                     conics.conic_from_ellipse(centre.reshape(n, 2), a, b, angle))

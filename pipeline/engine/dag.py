@@ -4,12 +4,14 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 
+from pipeline.config import RunConfig
 from pipeline.engine.stage import Stage
 from pipeline.errors import PipelineError
 
 
 class Dag:
-    """Stages in a valid order, with each stage's upstream stages (producers of its inputs)."""
+    """Stages in a valid order, with each stage's upstream stages (producers of its inputs) and
+    those of its optional inputs (upstream only for the configs that use them)."""
 
     def __init__(self, stages: Iterable[Stage]):
         self.stages: dict[str, Stage] = {}
@@ -25,12 +27,24 @@ class Dag:
                 producer[o] = s.name
         self.producer: Mapping[str, str] = producer
         self.upstream: dict[str, tuple[str, ...]] = {}
+        self.optional_upstream: dict[str, tuple[str, ...]] = {}
         for s in self.stages.values():
-            missing = [i for i in s.inputs if i not in producer]
+            missing = [i for i in (*s.inputs, *s.optional_inputs) if i not in producer]
             if missing:
                 raise PipelineError(f"stage {s.name!r} reads {missing}, which no stage writes")
             self.upstream[s.name] = tuple(dict.fromkeys(producer[i] for i in s.inputs))
+            self.optional_upstream[s.name] = tuple(
+                u for u in dict.fromkeys(producer[i] for i in s.optional_inputs)
+                if u not in self.upstream[s.name])
         self.order = self._topological()
+
+    def upstream_for(self, name: str, cfg: RunConfig) -> tuple[str, ...]:
+        """The stages `name` reads from with this config (its optional inputs' producers too
+        when it uses them)."""
+        return tuple(dict.fromkeys(self.producer[i] for i in self[name].inputs_for(cfg)))
+
+    def _may_need(self, name: str) -> tuple[str, ...]:
+        return self.upstream[name] + self.optional_upstream[name]
 
     def _topological(self) -> tuple[str, ...]:
         done: list[str] = []
@@ -42,7 +56,7 @@ class Dag:
             if name in visiting:
                 raise PipelineError(f"stage {name!r} depends on itself")
             visiting.add(name)
-            for u in self.upstream[name]:
+            for u in self._may_need(name):
                 visit(u)
             visiting.discard(name)
             done.append(name)
@@ -57,20 +71,22 @@ class Dag:
         return self.stages[name]
 
     def upstream_closure(self, names: Iterable[str]) -> list[str]:
-        """`names` and everything they need, in order."""
+        """`names` and everything they may need (optional inputs too), in order."""
         need = set()
         todo = list(names)
         while todo:
             n = todo.pop()
             if n not in need:
                 need.add(self[n].name)
-                todo.extend(self.upstream[n])
+                todo.extend(self._may_need(n))
         return [n for n in self.order if n in need]
 
-    def downstream_of(self, name: str) -> list[str]:
-        """`name` and every stage that depends on it, in order."""
+    def downstream_of(self, name: str, cfg: RunConfig | None = None) -> list[str]:
+        """`name` and every stage that depends on it with this config (without one: that may
+        depend on it), in order."""
         found = {self[name].name}
         for n in self.order:
-            if any(u in found for u in self.upstream[n]):
+            ups = self._may_need(n) if cfg is None else self.upstream_for(n, cfg)
+            if any(u in found for u in ups):
                 found.add(n)
         return [n for n in self.order if n in found]

@@ -43,14 +43,14 @@ class Executor:
         memo = {} if _memo is None else _memo
         if stage not in memo:
             s = self.dag[stage]
-            upstream = [self.key(u, cfg, memo) for u in self.dag.upstream[stage]]
+            upstream = [self.key(u, cfg, memo) for u in self.dag.upstream_for(stage, cfg)]
             memo[stage] = config_hash(s.config_hash(cfg), code_hash(s.code), upstream)
         return memo[stage]
 
     def is_fresh(self, stage: str, cfg: RunConfig, store: RunStore) -> bool:
         s = self.dag[stage]
         key = self.key(stage, cfg)
-        upstream = {u: store.token(u) for u in self.dag.upstream[stage]}
+        upstream = {u: store.token(u) for u in self.dag.upstream_for(stage, cfg)}
         return store.is_fresh(stage, key, upstream) and (
             s.fresh_outside is None or s.fresh_outside(cfg, key))
 
@@ -61,7 +61,7 @@ class Executor:
         wanted = set(self.dag.order if stages is None else stages)
         for name in wanted:
             self.dag[name]  # unknown names fail here, with the known ones listed
-        forced = {d for f in force for d in self.dag.downstream_of(f)}
+        forced = {d for f in force for d in self.dag.downstream_of(f, cfg)}
         return [Invocation(n, cfg, n in forced) for n in self.dag.order if n in wanted]
 
     def execute(self, plan: list[Invocation], store: RunStore) -> list[str]:
@@ -86,14 +86,14 @@ class Executor:
             return False
         inputs, paths = {}, {}
         rid = "" if store.run_id == cfg.name else f" --run-id {store.run_id}"
-        for u in self.dag.upstream[s.name]:
+        for u in self.dag.upstream_for(s.name, cfg):
             if not self.is_fresh(u, cfg, store):
                 raise StageInputError(
                     f"stage {s.name!r} of run {store.run_id!r} needs stage {u!r}, which is "
                     f"missing or out of date for this config: run `just {u} {cfg.name}{rid}` or "
                     f"`just run {cfg.name}{rid}`")
             inputs[u] = {"key": self.key(u, cfg), "token": store.token(u)}
-        for name in s.inputs:
+        for name in s.inputs_for(cfg):
             paths[name] = store.stage_dir(self.dag.producer[name]) / name
         tx = store.begin(s.name, key, inputs, s.config_hash(cfg), code_hash(s.code),
                          force=inv.force)

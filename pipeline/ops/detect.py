@@ -13,6 +13,7 @@ from pipeline.core.detection import (
     PHYSICAL_COLUMNS,
     CraterArrays,
     DetectionModel,
+    FrameDetections,
     PhysicalSensor,
     detect_frame,
     frame_rngs,
@@ -54,7 +55,6 @@ def detect_all(model: DetectionModel, craters: CraterArrays, trajectory: pl.Data
     elevation under the spacecraft and the ground sample distance (the physical sensor needs
     them)."""
     frame = trajectory["frame"].to_numpy()
-    t_s = trajectory["t_s"].to_numpy()
     theta = trajectory["theta_m_rad"].to_numpy()
     alt_m = trajectory["altitude_m"].to_numpy()
     r_mcmf = xyz(trajectory, "r_mcmf", "_m")
@@ -71,6 +71,19 @@ def detect_all(model: DetectionModel, craters: CraterArrays, trajectory: pl.Data
                                       None if sun_mcmf_m is None else sun_mcmf_m[i], world))
         if advance is not None:
             advance()
+    return tables(model, craters, trajectory, per_frame, sun_mcmf_m)
+
+
+def tables(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFrame,
+           per_frame: list[FrameDetections], sun_mcmf_m: np.ndarray | None
+           ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """The detections table (one row per detection and frame) and the frames table of the
+    frames' detections. A detection's truth row -1 is a false detection (crater_id -1, NaN
+    truth); matched row -1 is one identified as no crater (matched_id -1, NaN position)."""
+    frame = trajectory["frame"].to_numpy()
+    t_s = trajectory["t_s"].to_numpy()
+    theta = trajectory["theta_m_rad"].to_numpy()
+    alt_m = trajectory["altitude_m"].to_numpy()
     counts = np.array([f.row.size for f in per_frame], dtype=np.int64)
 
     def cat(attr: str) -> np.ndarray:
@@ -79,6 +92,7 @@ def detect_all(model: DetectionModel, craters: CraterArrays, trajectory: pl.Data
     row, matched = cat("row").astype(np.int64), cat("matched_row").astype(np.int64)
     theta_rows = np.repeat(theta, counts)
     c_mci = frames.mci_from_mcmf(craters.r_mcmf_m[matched], theta_rows)
+    c_mci[matched < 0] = np.nan
     u_true = cat("u_true_body").reshape(-1, 3)
     u_meas = cat("u_meas_body").reshape(-1, 3)
     pixel = cat("pixel_uv").reshape(-1, 2)
@@ -86,13 +100,15 @@ def detect_all(model: DetectionModel, craters: CraterArrays, trajectory: pl.Data
     detections = pl.DataFrame({
         "frame": np.repeat(frame, counts).astype(np.int32), "t_s": np.repeat(t_s, counts),
         "det_index": (np.arange(counts.sum()) - first_row).astype(np.int32),
-        "crater_id": craters.crater_id[row], "diam_km": craters.diam_km[row],
-        "matched_id": craters.crater_id[matched], **xyz_columns("c_mci", "_m", c_mci),
+        "crater_id": np.where(row >= 0, craters.crater_id[row], -1),
+        "diam_km": np.where(row >= 0, craters.diam_km[row], np.nan),
+        "matched_id": np.where(matched >= 0, craters.crater_id[matched], -1),
+        **xyz_columns("c_mci", "_m", c_mci),
         **xyz_columns("u_true_body", "", u_true), **xyz_columns("u_meas_body", "", u_meas),
         "rho_true_m": cat("rho_true_m"), "rho_meas_m": cat("rho_meas_m"),
         "pixel_u": pixel[:, 0], "pixel_v": pixel[:, 1],
         "identified": cat("identified").astype(bool), "used": cat("used").astype(bool),
-        "false_match": row != matched,
+        "false_match": (matched >= 0) & (row != matched),
     })
     if model.physical is not None:
         detections = detections.with_columns(**{

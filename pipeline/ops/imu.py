@@ -55,8 +55,10 @@ def record_times(t_impact_s: float, record_rate_hz: float, frame_t_s: np.ndarray
     grid = grid[(grid >= frame_t_s.min()) & (grid <= frame_t_s.max()) & (grid < t_impact_s)]
     # a grid time within TIME_TOL_S of a frame is that frame (k / r computed two ways)
     frames_sorted = np.sort(frame_t_s)
-    i = np.clip(np.searchsorted(frames_sorted, grid), 1, max(frames_sorted.size - 1, 1))
-    near = np.minimum(np.abs(grid - frames_sorted[i - 1]), np.abs(grid - frames_sorted[i]))
+    i = np.searchsorted(frames_sorted, grid)
+    last = frames_sorted.size - 1
+    near = np.minimum(np.abs(grid - frames_sorted[np.clip(i - 1, 0, last)]),
+                      np.abs(grid - frames_sorted[np.clip(i, 0, last)]))
     return np.unique(np.concatenate([grid[near > TIME_TOL_S], frame_t_s]))
 
 

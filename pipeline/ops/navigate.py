@@ -154,11 +154,19 @@ def measurements(opts: NavigateOptions, craters: UsedCraters, estimates: pl.Data
             if not in_outage(t_s):
                 out.append(filter.PoseFix(t_s, frame, r[i], q[i], cov[i]))
     if opts.altimeter_updates:
-        alt = altimeter.filter(pl.col("returned"))
-        for t_s, rho in zip(alt["t_s"].to_list(), alt["rho_meas_m"].to_list(), strict=True):
-            sigma = (opts.altimeter_sigma[0] + opts.altimeter_sigma[1] * rho
-                     if isinstance(opts.altimeter_sigma, tuple) else opts.altimeter_sigma)
-            out.append(filter.AltimeterSample(t_s, rho, sigma))
+        out.extend(altimeter_samples(opts, altimeter))
+    return out
+
+
+def altimeter_samples(opts: NavigateOptions, altimeter: pl.DataFrame
+                      ) -> list[filter.AltimeterSample]:
+    """The altimeter's returns with the noise the navigator assumes, in time order."""
+    alt = altimeter.filter(pl.col("returned")).sort("t_s")
+    out = []
+    for t_s, rho in zip(alt["t_s"].to_list(), alt["rho_meas_m"].to_list(), strict=True):
+        sigma = (opts.altimeter_sigma[0] + opts.altimeter_sigma[1] * rho
+                 if isinstance(opts.altimeter_sigma, tuple) else opts.altimeter_sigma)
+        out.append(filter.AltimeterSample(t_s, rho, sigma))
     return out
 
 

@@ -69,15 +69,20 @@ def crlb_per_frame(trajectory: pl.DataFrame, used: pl.DataFrame, c_true_mci: np.
                   else np.empty(0))
     for i in range(frame.size):
         a, b = start[i], start[i + 1]
-        if b - a >= 3:
+        known = np.all(np.isfinite(c_true_mci[a:b]), axis=1)
+        if not known.all():  # false detections used: the bound counts the real craters only
+            rows = a + np.flatnonzero(known)
+        else:
+            rows = np.arange(a, b)
+        if rows.size >= 3:
             sigma_b: float | np.ndarray = sigma_bearing
             sigma_r: float | np.ndarray = sigma_range_m
             ranged = None
             if sensor_noise is not None:
-                sigma_b, sigma_r = measurement_sigmas(sensor_noise, rho_true[a:b],
-                                                      semi_major[a:b])
-                ranged = has_range[a:b]
-            out[i] = estimators.crlb(r[i], q[i], c_true_mci[a:b], sigma_bearing=sigma_b,
+                sigma_b, sigma_r = measurement_sigmas(sensor_noise, rho_true[rows],
+                                                      semi_major[rows])
+                ranged = has_range[rows]
+            out[i] = estimators.crlb(r[i], q[i], c_true_mci[rows], sigma_bearing=sigma_b,
                                      sigma_range_m=sigma_r, has_range=ranged)
         if advance is not None:
             advance()
@@ -216,4 +221,86 @@ def summarize_navigation(nav: pl.DataFrame, wins: tuple[Window, ...]) -> pl.Data
                 row[f"{kind}_rejected"] = (int(nav[f"{kind}_rejected"].to_numpy()[sel].sum())
                                            if source == "filter" else 0)
             rows.append(row)
+    return pl.DataFrame(rows)
+
+
+IDENTIFICATION_BINS = (0, 8, 16, 32, 64, 128)  # detections per frame: the bins' lower edges
+
+
+def summarize_identification(detections: pl.DataFrame, frames_table: pl.DataFrame,
+                             wins: tuple[Window, ...]) -> pl.DataFrame:
+    """Per window and identification mode (all frames, and each mode the run used): detections
+    (real and false), the share of real detections identified as their own crater
+    (`share_correct`, the paper assumes 0.85), wrong identifications (count, and share of the
+    identified), frames with a fix (share of frames with detections), wrong fixes (frames with a
+    fix where wrong identifications outnumber right ones), time to the first fix from the first
+    frame with detections, and the time per frame (median, 95th percentile, ms)."""
+    det = detections.with_columns(
+        correct=pl.col("identified") & (pl.col("matched_id") == pl.col("crater_id"))
+        & (pl.col("crater_id") >= 0),
+        wrong=pl.col("identified") & (pl.col("matched_id") != pl.col("crater_id")))
+    per_frame = det.group_by("frame").agg(
+        pl.col("correct").sum().alias("n_correct"), pl.col("wrong").sum().alias("n_wrong"),
+        (pl.col("crater_id") >= 0).sum().alias("n_real"))
+    f = frames_table.join(per_frame, on="frame", how="left").with_columns(
+        pl.col("n_correct", "n_wrong", "n_real").fill_null(0))
+    if "id_mode" not in f.columns:  # the coin flip: a frame has a fix with 3 identified craters
+        f = f.with_columns(id_mode=pl.lit("simulated"), id_ok=pl.col("n_identified") >= 3,
+                           id_ms=pl.lit(float("nan")))
+    t = f["t_s"].to_numpy()
+    seen = f["n_visible"].to_numpy() > 0
+    mode_of = f["id_mode"].to_numpy().astype(str)
+    ok = f["id_ok"].to_numpy().astype(bool)
+    ms = f["id_ms"].to_numpy().astype(float)
+    n = {c: f[c].to_numpy() for c in ("n_visible", "n_identified", "n_correct", "n_wrong",
+                                      "n_real")}
+    wrong_fix = ok & (n["n_wrong"] > n["n_correct"])
+    rows = []
+    modes = ["all", *sorted(set(mode_of.tolist()) - {"none"})]
+    for w in wins:
+        inside = (t >= w.start_s) & (t < w.end_s)
+        first_seen = t[inside & seen].min() if (inside & seen).any() else np.nan
+        first_fix = t[inside & ok].min() if (inside & ok).any() else np.nan
+        for mode in modes:
+            m = inside & seen & ((mode_of == mode) if mode != "all" else True)
+            identified, real = int(n["n_identified"][m].sum()), int(n["n_real"][m].sum())
+            correct, wrong = int(n["n_correct"][m].sum()), int(n["n_wrong"][m].sum())
+            timed = ms[m][np.isfinite(ms[m])]
+            rows.append({
+                "window": w.name, "mode": mode, "start_s": w.start_s, "end_s": w.end_s,
+                "frames_with_detections": int(m.sum()),
+                "detections": int(n["n_visible"][m].sum()), "real_detections": real,
+                "identified": identified, "correct": correct,
+                "share_correct": correct / real if real else np.nan,
+                "wrong": wrong, "share_wrong": wrong / identified if identified else np.nan,
+                "frames_with_fix": int(ok[m].sum()),
+                "share_frames_with_fix": float(ok[m].mean()) if m.any() else np.nan,
+                "wrong_fixes": int(wrong_fix[m].sum()),
+                "time_to_first_fix_s": float(first_fix - first_seen) if mode == "all"
+                else np.nan,
+                "median_ms": float(np.median(timed)) if timed.size else np.nan,
+                "p95_ms": float(np.percentile(timed, 95)) if timed.size else np.nan,
+            })
+    return pl.DataFrame(rows)
+
+
+def identification_by_detections(frames_table: pl.DataFrame) -> pl.DataFrame:
+    """Lost-in-space frames binned by their number of detections (IDENTIFICATION_BINS): frames,
+    the share with a fix and the median time (ms)."""
+    if "id_mode" not in frames_table.columns:
+        return pl.DataFrame()
+    lis = frames_table.filter(pl.col("id_mode") == "lost_in_space")
+    edges = np.array(IDENTIFICATION_BINS)
+    n = lis["n_visible"].to_numpy()
+    b = np.searchsorted(edges, n, side="right") - 1
+    rows = []
+    for i, lo in enumerate(edges):
+        sel = b == i
+        hi = f"{edges[i + 1] - 1}" if i + 1 < edges.size else "+"
+        ok = lis["id_ok"].to_numpy()[sel]
+        rows.append({"detections": f"{lo}-{hi}" if hi != "+" else f"{lo}+",
+                     "frames": int(sel.sum()),
+                     "share_with_fix": float(ok.mean()) if sel.any() else np.nan,
+                     "median_ms": float(np.median(lis["id_ms"].to_numpy()[sel]))
+                     if sel.any() else np.nan})
     return pl.DataFrame(rows)

@@ -10,12 +10,43 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 
+from pipeline.config import RunConfig
+from pipeline.core.estimators import RobustOptions
+from pipeline.core.navigation.eskf import BA, BG, N_STATES, VEL
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.io import ephemeris
 from pipeline.io.catalogue_db import check_catalogue_unchanged, load_recorded_catalogue
+from pipeline.io.pair_index import PairIndexStore
+from pipeline.io.workspace import workspace
 from pipeline.ops.detect import detect_all, model_of
+from pipeline.ops.identify import IdentifyOptions, IndexCache, identify_all
+from pipeline.stages.estimate import options as estimate_options
+from pipeline.stages.navigate import options as navigate_options
 from pipeline.viz import recording
+
+
+def identify_options(cfg: RunConfig) -> IdentifyOptions:
+    """Identification's options of a run: its config, the navigator's assumed sensor noise, the
+    verifying pose's RANSAC and checks (config `estimation`) and the navigator's filter."""
+    i, n = cfg.identification, navigate_options(cfg)
+    noise = cfg.sensor_noise(navigator=True)
+    assert noise is not None  # identification needs the physical sensor (config checks it)
+    est = estimate_options(cfg)
+    e = cfg.estimation
+    sigma = np.zeros(N_STATES)  # a fix gives the pose; the rest as the filter's start
+    sigma[VEL] = n.init_sigma_velocity_m_s
+    sigma[BG] = n.imu.gyro.initial_bias_sigma
+    sigma[BA] = n.imu.accel.initial_bias_sigma
+    return IdentifyOptions(
+        mode=i.mode, gate_probability=i.gate_probability,
+        track_max_sigma_px=i.track_max_sigma_px, lost_after_frames=i.lost_after_frames,
+        prior_radius_m=i.prior_radius_km * 1e3, rough_position_error_m=i.rough_position_error_m,
+        star_tracker_sigma_rad=float(np.radians(i.star_tracker_sigma_arcsec / 3600.0)),
+        query_detections=i.query_detections, min_matches=i.min_matches,
+        false_detection_share=cfg.detection.false_detection_share, sensor_noise=noise,
+        robust=RobustOptions(e.gate_probability, e.ransac_max_hypotheses, e.ransac_confidence),
+        checks=est.checks, filter=n.filter, restart_sigma=sigma)
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -25,8 +56,23 @@ def run(ctx: StageContext) -> StageResult:
     model = model_of(cfg.detection)
     epoch = cfg.trajectory.epoch_utc
     sun = None if epoch is None else ephemeris.sun_mcmf_m(epoch, trajectory["t_s"].to_numpy())
-    with progress_bar("detecting craters", trajectory.height) as advance:
-        detections, frames_table = detect_all(model, craters, trajectory, cfg.seed, advance, sun)
+    ident = cfg.identification
+    if ident.mode == "simulated":
+        with progress_bar("detecting craters", trajectory.height) as advance:
+            detections, frames_table = detect_all(model, craters, trajectory, cfg.seed, advance,
+                                                  sun)
+    else:
+        assert sun is not None  # the config asks for an epoch with the physical sensor
+        indexes = IndexCache(craters, PairIndexStore(workspace().resolve(ident.index_dir),
+                                                     craters.meta["key"]),
+                             cfg.detection.detect_min_diameter_px)
+        with progress_bar(f"detecting and identifying craters ({ident.mode})",
+                          trajectory.height) as advance:
+            detections, frames_table = identify_all(
+                model, identify_options(cfg), navigate_options(cfg), craters, trajectory, sun,
+                pl.read_parquet(ctx.input("imu.parquet")),
+                pl.read_parquet(ctx.input("imu_truth.parquet")),
+                pl.read_parquet(ctx.input("altimeter.parquet")), indexes, cfg.seed, advance)
     tx.table("detections", detections)
     tx.table("frames", frames_table)
     with recording.recording(ctx.store.run_id, tx.output("detection.rrd")) as rec:
@@ -54,8 +100,12 @@ def run(ctx: StageContext) -> StageResult:
 STAGE = Stage(
     name="detect",
     doc="craters in view, visible (Eq. 9), identified, used; their measurements",
-    reads=("detection", "trajectory.epoch_utc", "seed"),
+    reads=("detection", "identification", "identification_navigator", "trajectory.epoch_utc",
+           "seed"),
     inputs=("catalogue.json", "trajectory.parquet"),
+    # identification by algorithm runs the navigation filter: the IMU and the altimeter
+    optional_inputs=("imu.parquet", "imu_truth.parquet", "altimeter.parquet"),
+    uses_optional=lambda cfg: cfg.identification.mode != "simulated",
     outputs=("detections.parquet", "frames.parquet", "detection.rrd"),
     code=("pipeline.stages.detect",),
     run=run,

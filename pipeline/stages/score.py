@@ -21,8 +21,10 @@ from pipeline.io.catalogue_db import check_catalogue_unchanged
 from pipeline.io.store import RunStore
 from pipeline.ops.score import (
     CraterLookup,
+    identification_by_detections,
     score_run,
     summarize,
+    summarize_identification,
     summarize_navigation,
     windows,
 )
@@ -75,18 +77,23 @@ def run(ctx: StageContext) -> StageResult:
     tx.table("summary", summary)
     tx.table("by_craters_used", by_used)
     tx.table("navigation_summary", nav_summary)
+    identification = summarize_identification(detections, frames_table, wins)
+    by_detections = identification_by_detections(frames_table)
+    tx.table("identification", identification)
     with recording.recording(ctx.store.run_id, tx.output("scoring.rrd")) as rec:
         recording.log_scoring(rec, scores)
     recording.save_layout(tx.output("layout.rbl"), scores)
     report.write_run_report(tx, cfg, ctx.store.run_id, trajectory, frames_table, scores, summary,
                             t_impact, by_used=by_used, navigation=navigation,
-                            nav_summary=nav_summary)
+                            nav_summary=nav_summary, identification=identification,
+                            by_detections=by_detections)
     folder = ctx.store.stage_dir("score")
     return StageResult(
         info={"t_impact_s": t_impact, "table_window": cfg.scoring.table_window},
         summary=(f"wrote {folder / 'scores.parquet'}, {folder / 'summary.parquet'}, "
-                 f"{folder / 'by_craters_used.parquet'}, {folder / 'navigation_summary.parquet'}"
-                 " (tables scores, summary, by_craters_used, navigation_summary)",
+                 f"{folder / 'by_craters_used.parquet'}, {folder / 'navigation_summary.parquet'}, "
+                 f"{folder / 'identification.parquet'} (tables scores, summary, by_craters_used, "
+                 "navigation_summary, identification)",
                  f"report: {folder / 'report.md'}",
                  f"look at it: rerun {folder / 'scoring.rrd'}"))
 
@@ -132,11 +139,12 @@ def headline(cfg: RunConfig, store: RunStore) -> str:
 STAGE = Stage(
     name="score",
     doc="errors, Cramér-Rao bound, NEES, windows, figures, report.md",
-    reads=("scoring", "detection"),
+    reads=("scoring", "detection", "identification"),
     inputs=("trajectory.parquet", "trajectory.json", "catalogue.json", "detections.parquet",
             "frames.parquet", "estimates.parquet", "navigation.parquet"),
     outputs=("scores.parquet", "summary.parquet", "by_craters_used.parquet",
-             "navigation_summary.parquet", "scoring.rrd", "layout.rbl", "report.md"),
+             "navigation_summary.parquet", "identification.parquet", "scoring.rrd", "layout.rbl",
+             "report.md"),
     code=("pipeline.stages.score",),
     run=run,
     verify=lambda ctx: check_catalogue_unchanged(ctx.input("catalogue.json")),

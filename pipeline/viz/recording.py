@@ -322,6 +322,35 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
         log_sun(rec, frames_table)
     if has_rim_ellipses(detections):
         log_rim_ellipses(rec, detections, frames_table)
+    if "id_ms" in frames_table.columns:  # identification by algorithm
+        log_identification(rec, frames_table)
+
+
+IDENTIFICATION_ENTITY = "/identification"
+
+
+def log_identification(rec: rr.RecordingStream, frames_table) -> None:
+    """Identification's per-frame series: its time (ms), the prior's ellipse-centre 1-sigma
+    (px; inf when lost is left out), wrong identifications and false detections (counts), and
+    the mode as a code (0 none, 1 tracking, 2 lost in space)."""
+    frame = frames_table["frame"].to_numpy()
+    t_s = frames_table["t_s"].to_numpy()
+    sigma = frames_table["id_prior_sigma_px"].to_numpy()
+    code = {"none": 0, "tracking": 1, "lost_in_space": 2}
+    e = IDENTIFICATION_ENTITY
+    send_scalars(rec, f"{e}/time_ms", frame, t_s, frames_table["id_ms"].to_numpy(),
+                 "identification time (ms)")
+    send_scalars(rec, f"{e}/prior_sigma_px", frame, t_s, np.where(np.isfinite(sigma), sigma,
+                                                                  np.nan),
+                 "prior ellipse-centre 1-sigma (px)")
+    send_scalars(rec, f"{e}/mode", frame, t_s,
+                 np.array([code[m] for m in frames_table["id_mode"].to_list()]),
+                 "mode: 0 none, 1 tracking, 2 lost in space", points=True)
+    send_scalars(rec, "/counts/wrong_identifications", frame, t_s,
+                 frames_table["n_false_match"].to_numpy(), "wrong identifications",
+                 COUNT_COLORS["false_match"])
+    send_scalars(rec, "/counts/false_detections", frame, t_s,
+                 frames_table["n_false_detections"].to_numpy(), "false detections")
 
 
 # --- the Sun and the physical sensor's rim ellipses (log_detection, when the columns exist) -----
@@ -847,6 +876,17 @@ def plot_views(nees_max: float | None = None) -> list[rrb.TimeSeriesView]:
                            contents=["/counts/visible", "/counts/identified", "/counts/used"]),
         rrb.TimeSeriesView(origin="/counts", name="candidates (tile query)",
                            contents="/counts/candidates"),
+        # identification by algorithm (empty with the paper's coin flip)
+        rrb.TimeSeriesView(origin="/counts", name="wrong identifications, false detections",
+                           contents=["/counts/wrong_identifications",
+                                     "/counts/false_detections"]),
+        rrb.TimeSeriesView(origin=IDENTIFICATION_ENTITY, name="identification time (ms)",
+                           contents=f"{IDENTIFICATION_ENTITY}/time_ms"),
+        rrb.TimeSeriesView(origin=IDENTIFICATION_ENTITY, name="prior 1-sigma (px)",
+                           contents=f"{IDENTIFICATION_ENTITY}/prior_sigma_px"),
+        rrb.TimeSeriesView(origin=IDENTIFICATION_ENTITY, name="identification mode (code)",
+                           contents=f"{IDENTIFICATION_ENTITY}/mode",
+                           axis_y=rrb.ScalarAxis(range=(-0.5, 2.5))),
         rrb.TimeSeriesView(origin="/trajectory", name="altitude (km)",
                            contents="/trajectory/altitude_km"),
         rrb.TimeSeriesView(origin="/trajectory", name="speed (m/s)",

@@ -296,11 +296,14 @@ def write_run_report(tx, cfg: RunConfig, run_id: str, trajectory: pl.DataFrame,
                      frames_table: pl.DataFrame, scores: pl.DataFrame, summary: pl.DataFrame,
                      t_impact_s: float, by_used: pl.DataFrame | None = None,
                      study: Study = STUDY, navigation: pl.DataFrame | None = None,
-                     nav_summary: pl.DataFrame | None = None) -> None:
+                     nav_summary: pl.DataFrame | None = None,
+                     identification: pl.DataFrame | None = None,
+                     by_detections: pl.DataFrame | None = None) -> None:
     """report.md and its figures, written through the stage transaction (`tx.output(name)`
     gives the path to write `name` to). `by_used` is `by_craters_used(scores)` (computed here
     when not given); `navigation` and `nav_summary` (the filter's table and
-    `summarize_navigation`) add the navigation section."""
+    `summarize_navigation`) add the navigation section; `identification` and `by_detections`
+    (`summarize_identification`, `identification_by_detections`) the identification section."""
     d = cfg.detection
     cap = "no limit" if d.max_craters is None else f"{d.max_craters} ({d.selection})"
     by_used = by_craters_used(scores) if by_used is None else by_used
@@ -354,7 +357,53 @@ seconds before impact); here each bin of craters used stands alone. Cells: RMSE 
         fig_navigation(navigation, tx.output("fig_navigation.png"),
                        f"Navigation filter: position error and 3 sigma, MCI axes ({run_id})")
         text += navigation_section(cfg, nav_summary, summary)
+    if identification is not None:
+        text += identification_section(cfg, identification, by_detections)
     tx.output("report.md").write_text(text)
+
+
+def identification_section(cfg: RunConfig, ident: pl.DataFrame,
+                           by_detections: pl.DataFrame | None) -> str:
+    """The report's identification section: per window and mode the measured rates beside the
+    paper's assumed p = 0.85, wrong identifications, fixes and time per frame; lost in space by
+    the number of detections."""
+    i, d = cfg.identification, cfg.detection
+    head = ("| window | mode | frames with detections | detections (false) | identified "
+            "correctly | wrong (share of identified) | frames with a fix | wrong fixes | "
+            "first fix after (s) | ms per frame, median / 95 % |\n"
+            "|---|---|---|---|---|---|---|---|---|---|")
+    body = []
+    for r in ident.iter_rows(named=True):
+        false = r["detections"] - r["real_detections"]
+        share_wrong = "" if not np.isfinite(r["share_wrong"]) else f" ({r['share_wrong']:.2%})"
+        body.append(
+            f"| {r['window']} | {r['mode']} | {r['frames_with_detections']:,} | "
+            f"{r['detections']:,} ({false:,}) | {_pct(r['share_correct'], 2)} | "
+            f"{r['wrong']:,}{share_wrong} | {_pct(r['share_frames_with_fix'])} | "
+            f"{r['wrong_fixes']} | {_fmt(r['time_to_first_fix_s'])} | "
+            f"{_fmt(r['median_ms'])} / {_fmt(r['p95_ms'])} |")
+    lis = ""
+    if by_detections is not None and by_detections.height and by_detections["frames"].sum():
+        rows = "\n".join(f"| {r['detections']} | {r['frames']:,} | {_pct(r['share_with_fix'])} "
+                         f"| {_fmt(r['median_ms'])} |"
+                         for r in by_detections.iter_rows(named=True) if r["frames"])
+        lis = ("\nLost in space by the frame's detections (prior radius "
+               f"{i.prior_radius_km:g} km):\n\n| detections | frames | with a fix | median ms |"
+               f"\n|---|---|---|---|\n{rows}\n")
+    mode = (f"the paper's coin flip (p = {d.p_identify:g}, false matches "
+            f"{d.false_match_share:.0%})" if i.mode == "simulated" else f"`{i.mode}`")
+    return f"""
+## Crater identification
+
+Identification: {mode}; false detections {d.false_detection_share:.0%} of the real ones.
+`identified correctly` is the share of real detections matched to their own crater (the paper
+assumes 0.85); `wrong` counts detections matched to another crater (or a false detection
+matched to any); a wrong fix is a frame with a fix where wrong identifications outnumber right
+ones.
+
+{head}
+{chr(10).join(body)}
+{lis}"""
 
 
 def fig_navigation(nav: pl.DataFrame, path: Path, title: str) -> None:
@@ -572,5 +621,5 @@ it is what a bearing from the ellipse centre is off by (`bearing = "corrected"` 
     return path
 
 
-def _pct(x: float | None) -> str:
-    return "" if x is None or not np.isfinite(x) else f"{x:.0%}"
+def _pct(x: float | None, decimals: int = 0) -> str:
+    return "" if x is None or not np.isfinite(x) else f"{x:.{decimals}%}"

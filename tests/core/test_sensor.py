@@ -516,12 +516,14 @@ def test_measurement_sigmas_per_range_source() -> None:
 
 def test_frame_rngs_keep_the_paper_streams() -> None:
     """The first four streams are the children of spawn(4), as before the physical sensor, so
-    the paper's default run stays bit for bit; "detect" is a fifth, independent stream."""
+    the paper's default run stays bit for bit, and the physical sensor's "detect" the fifth of
+    spawn(5); the later ones (false detections, star tracker, verification) are new children."""
     rngs = frame_rngs(1, 1900)
-    assert list(rngs) == ["identify", "match", "select", "noise", "detect"]
+    assert list(rngs) == ["identify", "match", "select", "noise", "detect", "false", "star",
+                          "verify"]
     ss = np.random.SeedSequence(entropy=1, spawn_key=(0xDE7EC7, 1900))
-    old = [np.random.Generator(np.random.PCG64(s)) for s in ss.spawn(4)]
-    for name, gen in zip(("identify", "match", "select", "noise"), old, strict=True):
+    old = [np.random.Generator(np.random.PCG64(s)) for s in ss.spawn(5)]
+    for name, gen in zip(("identify", "match", "select", "noise", "detect"), old, strict=True):
         np.testing.assert_array_equal(rngs[name].random(64), gen.random(64), err_msg=name)
     # Pinned values (computed with the four-stream code): the tag and the keys are unchanged.
     pinned = {"identify": [0.6021678230020565, 0.9937466569752307],

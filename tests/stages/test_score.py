@@ -142,7 +142,8 @@ def test_scores_have_one_row_per_method_and_frame(runs):
     entry = r.store.entry("score")
     assert set(entry["outputs"]) >= {"scores.parquet", "summary.parquet", "scoring.rrd",
                                      "layout.rbl", "report.md", "by_craters_used.parquet"}
-    assert set(entry["tables"]) == {"scores", "summary", "by_craters_used", "navigation_summary"}
+    assert set(entry["tables"]) == {"scores", "summary", "by_craters_used", "navigation_summary",
+                                    "identification"}
 
 
 @pytest.mark.parametrize("name", ["clean", "false"])
@@ -449,7 +450,8 @@ def test_layout_is_a_blueprint_with_the_error_and_consistency_views(runs):
         "/navigation/nees_total", "/navigation/position_error_norm_m",
         "/navigation/bias/gyro_deg_h", "/navigation/bias/accel_milli_g", "/imu/body_rate_deg_s",
         "/altimeter/slant_range_km", "/imu/true_bias/gyro_deg_h", "/imu/true_bias/accel_milli_g",
-        "/navigation/updates/craters", "/navigation/updates", "/navigation/status"} | {
+        "/navigation/updates/craters", "/navigation/updates", "/navigation/status",
+        "/identification"} | {
         f"/navigation/errors/{q}/{a}" for q in ("position_m", "velocity_m_s", "attitude_deg")
         for a in "xyz"}
     assert origins == expected
@@ -458,6 +460,7 @@ def test_layout_is_a_blueprint_with_the_error_and_consistency_views(runs):
 # --- cache and headline ---------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_score_reruns_when_scoring_changes_and_is_skipped_otherwise(workdir, catalogue_db):
     def ran(**sections) -> list[str]:
         return run_stages(config("r", catalogue_db, **sections), RunStore("r").root)

@@ -42,7 +42,7 @@ def _chi2_gate(probability: float, dof: int = 3) -> float:
     return float(chi2.ppf(probability, dof))
 
 
-def _gates(probability: float, rho_m: np.ndarray) -> float | np.ndarray:
+def chi2_gates(probability: float, rho_m: np.ndarray) -> float | np.ndarray:
     """The chi-square gate of each crater with ranges `rho_m` (n,) (NaN: none): one number when
     every crater has a range, else (n,)."""
     missing = np.isnan(rho_m)
@@ -127,7 +127,7 @@ def robust_fit(estimator: Estimator, c_mci_m: np.ndarray, u_body: np.ndarray, rh
     if valid.sum() < 3:
         return failed(Status.TOO_FEW_CRATERS, valid, 0)
     o = estimator.options
-    gate = _gates(opts.gate_probability, rho[valid])
+    gate = chi2_gates(opts.gate_probability, rho[valid])
     sigma_b, sigma_r = per_crater(o.sigma_bearing, valid), per_crater(o.sigma_range_m, valid)
     use, prior = _ransac(c, u, rho, valid, sigma_b, sigma_r, opts, rng,
                          gate * RANSAC_LOOSE_FACTOR**2)

@@ -170,9 +170,7 @@ def run(x0: NavState, p0: np.ndarray, t0_s: float, imu: ImuSamples,
     (sorted, unique). Measurements at a record time are applied before it is recorded; the
     counts and NIS of updates between two record times go to the next record. Times closer than
     TIME_TOL_S are one time (a frame and a grid point computed two ways)."""
-    gate = {}
-    if opts.gate_probability is not None:
-        gate = {dof: float(chi2.ppf(opts.gate_probability, dof)) for dof in (1, 2, 3, 6)}
+    gate = gates(opts)
     record_list = _merge_times(np.asarray(record_times_s, dtype=float))
     record_list = record_list[record_list >= t0_s - TIME_TOL_S]
     record_set = {float(t) for t in record_list}
@@ -213,6 +211,30 @@ def run(x0: NavState, p0: np.ndarray, t0_s: float, imu: ImuSamples,
     if opts.smooth:
         _smooth(records, steps, times, t0_s)
     return records
+
+
+def gates(opts: FilterOptions) -> dict[int, float]:
+    """The chi-square gate per degrees of freedom of a measurement (empty: no gate)."""
+    if opts.gate_probability is None:
+        return {}
+    return {dof: float(chi2.ppf(opts.gate_probability, dof)) for dof in (1, 2, 3, 6)}
+
+
+def predict(x: NavState, p: np.ndarray, t_a: float, t_b: float, imu: ImuSamples,
+            opts: FilterOptions) -> tuple[NavState, np.ndarray]:
+    """The filter's prediction from t_a to t_b (s) on the IMU, in steps of at most max_step_s
+    (the steps `run` takes between measurements)."""
+    n = max(int(np.ceil((t_b - t_a) / opts.max_step_s - 1e-9)), 1)
+    for t0, t1 in zip(np.linspace(t_a, t_b, n + 1)[:-1], np.linspace(t_a, t_b, n + 1)[1:],
+                      strict=True):
+        x, p, _ = _propagate(x, p, float(t0), float(t1), imu, opts)
+    return x, p
+
+
+def update(x: NavState, p: np.ndarray, t_s: float, batch: list[Measurement],
+           opts: FilterOptions) -> Record:
+    """The filter's updates at one time (as in `run`, gated), and their counts and NIS."""
+    return _apply(x, p, t_s, batch, opts, gates(opts))
 
 
 def _merge_times(t_s: np.ndarray) -> np.ndarray:

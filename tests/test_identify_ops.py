@@ -1,0 +1,110 @@
+"""Lost-in-space identification over catalogues that do and do not hold the region seen: a
+region missing from the navigator's catalogue (its craters lie 90 km away, outside the prior)
+gives no fix, not a wrong one; the real Robbins >= 20 km catalogue fixes a frame at 295 km."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import DEFAULT_TOML, shared_file
+
+from pipeline.config import load_config
+from pipeline.core import frames, rotations, tiling
+from pipeline.io import ephemeris
+from pipeline.io.catalogue_db import Catalogue, load_catalogue
+from pipeline.io.tables import quats, xyz
+from pipeline.ops.detect import model_of
+from pipeline.ops.identify import IndexCache, identify_frames
+from pipeline.ops.imu import simulate as simulate_sensors
+from pipeline.ops.navigate import imu_samples
+from pipeline.ops.trajectory import simulate as simulate_trajectory
+from pipeline.stages import ingest
+from pipeline.stages.detect import identify_options
+from pipeline.stages.navigate import options as navigate_options
+
+CAMERA = {"sensor": "physical", "pixel_sigma_px": 0.3, "bearing": "corrected",
+          "range_source": "apparent_size", "false_detection_share": 0.2,
+          "catalogue_sigma_horizontal_m": 100.0, "catalogue_sigma_height_m": 50.0,
+          "catalogue_sigma_diameter_share": 0.05}
+
+
+def lost_frames(catalogue: dict, window: dict, navigator: Catalogue, seen: Catalogue | None,
+                detection: dict | None = None, epoch_utc: str = "2026-01-30T08:40:00Z"):
+    """identify_frames in lost_in_space mode over `window` with the navigator's catalogue."""
+    cfg = load_config(DEFAULT_TOML, "lis", {
+        "catalogue": catalogue, "trajectory": {**window, "epoch_utc": epoch_utc},
+        "detection": {**CAMERA, **(detection or {})},
+        "estimation": {"catalogue_sigmas": "truth"},
+        "identification": {"mode": "lost_in_space"}})
+    trajectory, _ = simulate_trajectory(cfg.trajectory)
+    sensors = simulate_sensors(cfg.trajectory, cfg.imu, cfg.altimeter, cfg.seed,
+                               trajectory["t_s"].to_numpy())
+    t = trajectory["t_s"].to_numpy()
+    theta = trajectory["theta_m_rad"].to_numpy()
+    dcm = rotations.dcm_from_q(quats(trajectory, "q_mci_from_body"))
+    dcm_body_from_mcmf = np.swapaxes(dcm, -1, -2) @ frames.dcm_mci_from_mcmf(theta)
+    nav = navigate_options(cfg)
+    results = identify_frames(
+        model_of(cfg.detection), identify_options(cfg), navigator, t,
+        trajectory["frame"].to_numpy(), theta, xyz(trajectory, "r_mcmf", "_m"),
+        dcm_body_from_mcmf, ephemeris.sun_mcmf_m(cfg.trajectory.epoch_utc, t), None,
+        imu_samples(sensors.imu, nav.imu_rate_hz), [], np.zeros((t.size, 3)),
+        IndexCache(navigator, None, cfg.detection.detect_min_diameter_px), cfg.seed, seen=seen)
+    return results, trajectory
+
+
+def rotated(cat: Catalogue, angle_rad: float) -> Catalogue:
+    """The catalogue's craters turned about the MCMF z axis (same ids and sizes): a catalogue
+    of another place."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    r = cat.r_mcmf_m @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T
+    unit = r / np.linalg.norm(r, axis=1, keepdims=True)
+    tiles = tiling.tile_of(unit, cat.index.order)
+    order = np.argsort(tiles, kind="stable")
+    return replace(cat, crater_id=cat.crater_id[order], diam_km=cat.diam_km[order],
+                   r_mcmf_m=r[order], index=tiling.TileIndex.build(unit[order], tiles[order],
+                                                                   cat.index.order))
+
+
+@pytest.fixture(scope="module")
+def small_catalogue(catalogue_db: Path) -> Catalogue:
+    return load_catalogue(catalogue_db)
+
+
+def test_a_region_missing_from_the_catalogue_gives_no_fix(small_catalogue: Catalogue,
+                                                         catalogue_db: Path) -> None:
+    window = {"start_s": 1900.0, "end_s": 1902.0}
+    cat = {"synthetic_min_diam_km": 5.0, "db_path": str(catalogue_db)}
+    # the real catalogue: every frame is fixed, and right
+    results, _ = lost_frames(cat, window, small_catalogue, None, {"detect_min_diameter_px": 5.0})
+    assert [r.ok for r in results] == [True] * 3
+    for r in results:
+        d = r.detections
+        assert d.identified.sum() >= 8 and np.all(d.matched_row[d.identified]
+                                                  == d.row[d.identified])
+    # the navigator's catalogue is of a place 3 deg (~90 km) away: no fix, nothing identified
+    elsewhere = rotated(small_catalogue, np.radians(3.0))
+    results, _ = lost_frames(cat, window, elsewhere, small_catalogue,
+                             {"detect_min_diameter_px": 5.0})
+    assert [r.mode for r in results] == ["lost_in_space"] * 3
+    assert not any(r.ok for r in results)
+    assert all(r.detections.identified.sum() == 0 for r in results)
+
+
+def test_robbins_catalogue_fixes_a_high_altitude_frame(tmp_path: Path) -> None:
+    source = shared_file("robbins2018_ge20km.csv")
+    cat = {"source": str(source), "db_path": str(tmp_path / "robbins.duckdb")}
+    cfg = load_config(DEFAULT_TOML, "robbins", {"catalogue": cat})
+    ingest.build(cfg, ingest.catalogue_key(cfg))
+    robbins = load_catalogue(tmp_path / "robbins.duckdb")
+    # half a lunar month after the camera scenario's epoch: the descent's first minutes are lit
+    results, trajectory = lost_frames(cat, {"start_s": 300.0, "end_s": 300.5}, robbins, None,
+                                      epoch_utc="2026-02-13T20:00:00Z")
+    (r,) = results
+    assert trajectory["altitude_m"][0] > 290e3
+    d = r.detections
+    assert r.ok and d.identified.sum() >= 8, (d.row.size, d.identified.sum())
+    assert np.all(d.matched_row[d.identified] == d.row[d.identified])
