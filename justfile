@@ -26,7 +26,11 @@ trajectory *args:
 imu *args:
     {{py}} imu "$@"
 
-# stage 3: visible, identified, used craters and their measurements
+# stage 2c: the camera's rendered images of chosen frames and the craters detected in them
+render *args:
+    {{py}} render "$@"
+
+# stage 3: visible, detected and identified craters, used, and their measurements
 detect *args:
     {{py}} detect "$@"
 

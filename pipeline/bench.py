@@ -3,8 +3,8 @@
 Groups (run all, or pick with --only): ingest (1.3 M synthetic, LU1319381), query (200 km
 footprint, tiled vs brute force), detect (the default 3,000-frame scenario), estimators (per-frame
 time at 10, 100, 900 craters), navigate, physical, pnp (against OpenCV's solvePnP), identify
-(tracking and lost in space on the `identify` scenario), run (cold and warm `run` as a user
-starts it), sweep. Stage-level
+(tracking and lost in space on the `identify` scenario), render (images and detection from
+pixels on the `images` scenario), run (cold and warm `run` as a user starts it), sweep. Stage-level
 groups work in a scratch copy of the project folder, so the user's catalogue and runs are untouched.
 """
 
@@ -289,12 +289,10 @@ def _lost_in_space(scratch: Scratch, store: RunStore, radius_km: float, full: bo
                    ) -> list[Result]:
     import polars as pl
 
-    from pipeline.core import rotations
     from pipeline.io import ephemeris
     from pipeline.io.catalogue_db import load_recorded_catalogue
-    from pipeline.io.tables import quats, xyz
-    from pipeline.ops.detect import model_of
-    from pipeline.ops.identify import IndexCache, identify_frames
+    from pipeline.ops.detect import model_of, true_poses
+    from pipeline.ops.identify import IndexCache, identify_frames, model_sensing
     from pipeline.ops.navigate import imu_samples
     from pipeline.stages.detect import identify_options
     from pipeline.stages.navigate import options as navigate_options
@@ -310,16 +308,18 @@ def _lost_in_space(scratch: Scratch, store: RunStore, radius_km: float, full: bo
     t = trajectory.filter(pl.col("frame").is_in(pick.tolist()))
     craters = load_recorded_catalogue(store.path("catalogue.json"))
     theta = t["theta_m_rad"].to_numpy()
-    dcm = rotations.dcm_from_q(quats(t, "q_mci_from_body"))
-    dcm_body_from_mcmf = np.swapaxes(dcm, -1, -2) @ frames.dcm_mci_from_mcmf(theta)
+    r_mcmf, dcm_body_from_mcmf = true_poses(t)
     nav = navigate_options(cfg)
     imu = pl.read_parquet(store.path("imu.parquet"))
     indexes = IndexCache(craters, None, cfg.detection.detect_min_diameter_px)
     assert cfg.trajectory.epoch_utc is not None
+    model = model_of(cfg.detection)
+    sun = ephemeris.sun_mcmf_m(cfg.trajectory.epoch_utc, t["t_s"].to_numpy())
+    sensing = model_sensing(model, cfg.detection.false_detection_share, craters, r_mcmf,
+                            dcm_body_from_mcmf, sun)
     results = identify_frames(
-        model_of(cfg.detection), identify_options(cfg), craters, t["t_s"].to_numpy(),
-        t["frame"].to_numpy(), theta, xyz(t, "r_mcmf", "_m"), dcm_body_from_mcmf,
-        ephemeris.sun_mcmf_m(cfg.trajectory.epoch_utc, t["t_s"].to_numpy()), None,
+        model, identify_options(cfg), craters, sensing, t["t_s"].to_numpy(),
+        t["frame"].to_numpy(), theta, r_mcmf, dcm_body_from_mcmf, sun, None,
         imu_samples(imu, nav.imu_rate_hz), [], np.zeros((t.height, 3)), indexes, cfg.seed)
     n_det = np.array([r.detections.row.size for r in results])
     ok = np.array([r.ok for r in results])
@@ -341,6 +341,43 @@ def _lost_in_space(scratch: Scratch, store: RunStore, radius_km: float, full: bo
                     "regions over the descent)", float(builds.max() / 1e3), "s", 30.0),
         ]
     return out
+
+
+def bench_render(scratch: Scratch) -> list[Result]:
+    """The `images` scenario with every 10th frame rendered (31 images of 1024 x 1024 px):
+    render and detect times, the detector against the true rims, the navigation from pixels."""
+    import polars as pl
+
+    (scratch.dir / "runs" / "scenarios" / "bench-images.toml").write_text(
+        'extends = "images"\n\n[render]\nstride = 10\n')
+    scratch.cli("run", "bench-images")
+    store = RunStore("bench-images", scratch.dir / "runs")
+    facts = store.entry("render")["info"]
+    window = load_config("images").scoring.table_window
+    nav = pl.read_parquet(store.path("navigation_summary.parquet")).filter(
+        (pl.col("source") == "filter") & (pl.col("window") == window))
+    rrd = store.path("render.rrd").stat().st_size / 2**20
+    n = facts["frames"]
+    return [
+        _result(f"render: one 1024 x 1024 frame of the images scenario (median of {n})",
+                facts["render_ms_median"], "ms", 200.0),
+        _result("render: crater detection in one frame (median)", facts["detect_ms_median"],
+                "ms", 300.0),
+        _result(f"render: recall of true rims >= 10 px at incidence 30-80 deg "
+                f"({int(facts['n_truth_10px_inc30_80']):,} rims)", facts["recall_10px_inc30_80"],
+                "", 0.9, at_least=True),
+        _result(f"render: precision ({facts['false_per_image']:.1f} false detections per image)",
+                facts["precision"], "", 0.95, at_least=True),
+        _result("render: median centre error of the matched detections",
+                facts["centre_error_px_median"], "px", 0.5),
+        _result("render: median diameter error of the matched detections (absolute)",
+                facts["diameter_error_pct_median_abs"], "%"),
+        _result(f"render: recording of {n} images (JPEG, 512 px) with their rims", rrd, "MiB"),
+        _result(f"render: navigation filter from pixels, position RMSE norm over {window} "
+                "(tracking on the detected craters)",
+                float(np.sqrt(sum(nav[f"rmse_{a}_m"][0] ** 2 for a in "xyz"))) if nav.height
+                else float("nan"), "m"),
+    ]
 
 
 def bench_run(scratch: Scratch) -> list[Result]:
@@ -372,7 +409,8 @@ def bench_sweep(scratch: Scratch) -> list[Result]:
 GROUPS: dict[str, Callable[[Scratch], list[Result]]] = {
     "ingest": bench_ingest, "query": bench_query, "detect": bench_detect,
     "estimators": bench_estimators, "navigate": bench_navigate, "physical": bench_physical,
-    "pnp": bench_pnp, "identify": bench_identify, "run": bench_run, "sweep": bench_sweep,
+    "pnp": bench_pnp, "identify": bench_identify, "render": bench_render, "run": bench_run,
+    "sweep": bench_sweep,
 }
 
 

@@ -81,6 +81,13 @@ def imu(scenario: Scenario = "default", run_id: RunId = None, force: Force = Fal
 
 
 @app.command()
+def render(scenario: Scenario = "default", run_id: RunId = None, force: Force = False) -> None:
+    """Render the chosen frames' camera images and detect craters in their pixels
+    (pixel_detections.parquet, images.parquet, contact_sheet.png, render.rrd)."""
+    _stage("render", scenario, run_id, force)
+
+
+@app.command()
 def detect(scenario: Scenario = "default", run_id: RunId = None, force: Force = False) -> None:
     """Visible, identified and used craters per frame, with measurements (detections.parquet)."""
     _stage("detect", scenario, run_id, force)
@@ -117,7 +124,7 @@ def run(
 
     cfg = load_config(scenario, run_id)
     ex = _executor()
-    stages = ex.dag.upstream_closure([RUN_TARGET])
+    stages = ex.dag.upstream_closure([RUN_TARGET], cfg)
     for f in force or []:
         if f not in stages:
             raise PipelineError(f"--force {f!r}: not a stage of `run`; stages are {stages}")

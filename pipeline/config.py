@@ -48,6 +48,7 @@ BEARING_SOURCES = ("ellipse_centre", "corrected")
 RANGE_SOURCES = ("per_crater", "apparent_size", "none")
 CATALOGUE_SIGMAS = ("ignore", "truth")
 IDENTIFICATION_MODES = ("simulated", "tracking", "lost_in_space", "tracking_lis")
+DETECTION_SOURCES = ("model", "pixels")
 
 DIAM_UNITS = ("km", "m")
 
@@ -356,6 +357,7 @@ class DetectionConfig:
     catalogue_sigma_diameter_share: float
     world_seed: int  # the catalogue errors' seed (the world is fixed: shared by every run)
     false_detection_share: float  # physical: extra random ellipses, a share of the true ones
+    source: str  # model (the sensor's detection model) | pixels (the detector on rendered images)
 
     def __post_init__(self) -> None:
         k = "detection."
@@ -413,6 +415,15 @@ class DetectionConfig:
         if self.sensor == "paper":
             _check(self.false_detection_share == 0.0, k + "false_detection_share",
                    "needs sensor = \"physical\" (false detections are ellipses)")
+        _check(self.source in DETECTION_SOURCES, k + "source",
+               f"= {self.source!r}: must be one of {DETECTION_SOURCES}")
+        if self.source == "pixels":
+            _check(self.sensor == "physical", k + "source",
+                   "= \"pixels\" needs sensor = \"physical\" (a pixel camera)")
+            _check(not any(self.distortion), k + "source", "= \"pixels\" needs no distortion "
+                   "(the detector's ellipses are in the distorted image)")
+            _check(self.false_detection_share == 0.0, k + "false_detection_share",
+                   "must be 0 with source = \"pixels\" (the detector makes its own)")
 
     def pixel_camera(self) -> camera.PixelCamera:
         """The physical sensor's camera: the field of view, the image size, the distortion."""
@@ -682,6 +693,46 @@ class IdentificationConfig:
 
 
 @dataclass(frozen=True)
+class RenderConfig:
+    """Rendered camera images (stage `render`): which frames, the terrain's roughness and the
+    sensor; the craters come from the world (the catalogue with its errors), the camera and the
+    Sun from `detection` and `trajectory`."""
+
+    start_s: float | None  # first frame rendered (s); None: no image
+    end_s: float | None  # last frame rendered (s, inclusive)
+    stride: int  # every stride-th frame of the window
+    roughness_rms_slope_deg: float  # fractal roughness: RMS slope over one ground pixel
+    albedo: float  # normal albedo of the Lunar-Lambert function
+    read_noise_e: float
+    full_well_e: float
+    bits: int
+    blur_sigma_px: float
+    recording_size_px: int  # side of the recording's images (JPEG)
+
+    def __post_init__(self) -> None:
+        k = "render."
+        _check((self.start_s is None) == (self.end_s is None), k + "end_s",
+               "give both start_s and end_s, or neither")
+        if self.start_s is not None and self.end_s is not None:
+            _num(self.start_s, k + "start_s", 0.0, PROPAGATION_LIMIT_S, unit="s")
+            _num(self.end_s, k + "end_s", 0.0, PROPAGATION_LIMIT_S, unit="s")
+            _check(self.end_s >= self.start_s, k + "end_s",
+                   f"= {self.end_s:g} s must be >= start_s ({self.start_s:g} s)")
+        _num(self.stride, k + "stride", 1, 1_000_000)
+        _num(self.roughness_rms_slope_deg, k + "roughness_rms_slope_deg", 0.0, 30.0, unit="deg")
+        _num(self.albedo, k + "albedo", 0.01, 1.0)
+        _num(self.read_noise_e, k + "read_noise_e", 0.0, 1e4, unit="e-")
+        _num(self.full_well_e, k + "full_well_e", 100.0, 1e7, unit="e-")
+        _num(self.bits, k + "bits", 8, 16)
+        _num(self.blur_sigma_px, k + "blur_sigma_px", 0.0, 10.0, unit="px")
+        _num(self.recording_size_px, k + "recording_size_px", 64, 4096, unit="px")
+
+    @property
+    def enabled(self) -> bool:
+        return self.start_s is not None
+
+
+@dataclass(frozen=True)
 class Window:
     """A scoring window [start_s, end_s) of simulation time."""
 
@@ -766,6 +817,7 @@ class RunConfig:
     altimeter: AltimeterConfig
     navigation: NavigationConfig
     identification: IdentificationConfig
+    render: RenderConfig
     scoring: ScoringConfig
     sweep: SweepConfig
 
@@ -783,6 +835,16 @@ class RunConfig:
             _check(not (n.loose_method == "paper" and self.detection.range_source == "none"),
                    "navigation.loose_method", "= 'paper' needs ranges (detection.range_source "
                    "= \"none\"): use \"joint\"")
+        _check(not self.render.enabled or (self.detection.sensor == "physical"
+                                           and self.trajectory.epoch_utc is not None),
+               "render.start_s", "rendering needs detection.sensor = \"physical\" and "
+               "trajectory.epoch_utc (the camera and the Sun)")
+        if self.detection.source == "pixels":
+            _check(self.render.enabled, "detection.source",
+                   "= \"pixels\" needs rendered frames (render.start_s, render.end_s)")
+            _check(self.identification.mode != "simulated", "detection.source",
+                   "= \"pixels\" needs identification by algorithm (identification.mode): "
+                   "the coin flip cannot name the crater of a detection from pixels")
         _check(self.identification.mode == "simulated" or self.detection.sensor == "physical",
                "identification.mode", f"= {self.identification.mode!r} matches rim ellipses: it "
                "needs detection.sensor = \"physical\"")

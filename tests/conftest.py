@@ -69,7 +69,7 @@ def run_stages(cfg: RunConfig, root: Path, stages: Iterable[str] | None = None,
     """Bring `stages` (default: those of `just run`) of `cfg` up to date in `root`/<run_id>;
     returns the stages that ran."""
     ex = Executor(DAG, runner)
-    names = ex.dag.upstream_closure(["score"]) if stages is None else list(stages)
+    names = ex.dag.upstream_closure(["score"], cfg) if stages is None else list(stages)
     return ex.execute(ex.plan(cfg, names, force=force), RunStore(cfg.run_id, root))
 
 

@@ -151,10 +151,16 @@ def test_the_dag_follows_from_the_declarations():
             assert set(DAG[u].outputs) & set(DAG[name].inputs), (name, u)
     order = list(DAG.order)
     assert all(order.index(u) < order.index(n) for n in order for u in DAG.upstream[n])
-    assert DAG.upstream_closure([RUN_TARGET]) == ["ingest", "trajectory", "imu", "detect",
-                                                  "estimate", "navigate", "score"]
+    default = load_config("default")
+    assert DAG.upstream_closure([RUN_TARGET], default) == [
+        "ingest", "trajectory", "imu", "detect", "estimate", "navigate", "score"]
+    # without a config: every stage it may need (the rendered images when they are the source)
+    assert DAG.upstream_closure([RUN_TARGET]) == ["ingest", "trajectory", "imu", "render",
+                                                  "detect", "estimate", "navigate", "score"]
+    assert DAG.upstream_closure([RUN_TARGET], load_config("images"))[3] == "render"
     assert DAG.upstream_closure([SWEEP_TARGET]) == ["ingest", "trajectory", "sweep"]
     assert DAG.downstream_of("detect") == ["detect", "estimate", "navigate", "score"]
+    assert DAG.downstream_of("render", default) == ["render"]
     assert DAG.downstream_of("imu") == ["imu", "detect", "estimate", "navigate", "score"]
     # detect reads the IMU only when identification runs the navigation filter
     cfg = load_config("default")
@@ -244,8 +250,8 @@ def test_a_comment_in_the_report_module_rekeys_only_the_stages_that_import_it(mo
 
 def test_an_operation_edit_rekeys_its_stages_and_their_downstream(monkeypatch):
     code0, code1, key0, key1 = hashes_with_edit(monkeypatch, "pipeline.ops.detect")
-    assert changed(code0, code1) == {"detect", "sweep"}
-    assert changed(key0, key1) == {"detect", "estimate", "navigate", "score", "sweep"}
+    assert changed(code0, code1) == {"render", "detect", "sweep"}
+    assert changed(key0, key1) == {"render", "detect", "estimate", "navigate", "score", "sweep"}
 
 
 @pytest.mark.parametrize("module", ["pipeline.io.store", "pipeline.engine.executor",

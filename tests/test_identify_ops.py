@@ -12,12 +12,11 @@ import pytest
 from conftest import DEFAULT_TOML, shared_file
 
 from pipeline.config import load_config
-from pipeline.core import frames, rotations, tiling
+from pipeline.core import tiling
 from pipeline.io import ephemeris
 from pipeline.io.catalogue_db import Catalogue, load_catalogue
-from pipeline.io.tables import quats, xyz
-from pipeline.ops.detect import model_of
-from pipeline.ops.identify import IndexCache, identify_frames
+from pipeline.ops.detect import model_of, true_poses
+from pipeline.ops.identify import IndexCache, identify_frames, model_sensing
 from pipeline.ops.imu import simulate as simulate_sensors
 from pipeline.ops.navigate import imu_samples
 from pipeline.ops.trajectory import simulate as simulate_trajectory
@@ -33,7 +32,8 @@ CAMERA = {"sensor": "physical", "pixel_sigma_px": 0.3, "bearing": "corrected",
 
 def lost_frames(catalogue: dict, window: dict, navigator: Catalogue, seen: Catalogue | None,
                 detection: dict | None = None, epoch_utc: str = "2026-01-30T08:40:00Z"):
-    """identify_frames in lost_in_space mode over `window` with the navigator's catalogue."""
+    """identify_frames in lost_in_space mode over `window` with the navigator's catalogue; the
+    world is `seen` (None: the navigator's catalogue)."""
     cfg = load_config(DEFAULT_TOML, "lis", {
         "catalogue": catalogue, "trajectory": {**window, "epoch_utc": epoch_utc},
         "detection": {**CAMERA, **(detection or {})},
@@ -44,15 +44,17 @@ def lost_frames(catalogue: dict, window: dict, navigator: Catalogue, seen: Catal
                                trajectory["t_s"].to_numpy())
     t = trajectory["t_s"].to_numpy()
     theta = trajectory["theta_m_rad"].to_numpy()
-    dcm = rotations.dcm_from_q(quats(trajectory, "q_mci_from_body"))
-    dcm_body_from_mcmf = np.swapaxes(dcm, -1, -2) @ frames.dcm_mci_from_mcmf(theta)
+    r_mcmf, dcm_body_from_mcmf = true_poses(trajectory)
     nav = navigate_options(cfg)
+    model = model_of(cfg.detection)
+    sun = ephemeris.sun_mcmf_m(cfg.trajectory.epoch_utc, t)
+    sensing = model_sensing(model, cfg.detection.false_detection_share,
+                            navigator if seen is None else seen, r_mcmf, dcm_body_from_mcmf, sun)
     results = identify_frames(
-        model_of(cfg.detection), identify_options(cfg), navigator, t,
-        trajectory["frame"].to_numpy(), theta, xyz(trajectory, "r_mcmf", "_m"),
-        dcm_body_from_mcmf, ephemeris.sun_mcmf_m(cfg.trajectory.epoch_utc, t), None,
-        imu_samples(sensors.imu, nav.imu_rate_hz), [], np.zeros((t.size, 3)),
-        IndexCache(navigator, None, cfg.detection.detect_min_diameter_px), cfg.seed, seen=seen)
+        model, identify_options(cfg), navigator, sensing, t, trajectory["frame"].to_numpy(),
+        theta, r_mcmf, dcm_body_from_mcmf, sun, None, imu_samples(sensors.imu, nav.imu_rate_hz),
+        [], np.zeros((t.size, 3)),
+        IndexCache(navigator, None, cfg.detection.detect_min_diameter_px), cfg.seed)
     return results, trajectory
 
 

@@ -37,6 +37,16 @@ class CraterArrays(Protocol):
     index: tiling.TileIndex
 
 
+@dataclass
+class Craters:
+    """Crater arrays in memory (`CraterArrays`), rows sorted by the index's tiles."""
+
+    crater_id: np.ndarray
+    diam_km: np.ndarray
+    r_mcmf_m: np.ndarray
+    index: tiling.TileIndex
+
+
 @dataclass(frozen=True)
 class PhysicalSensor:
     """The physical sensor (`pipeline.core.sensor`): pixel camera, detectability, pixel noise,
@@ -152,11 +162,11 @@ def detect_frame(model: DetectionModel, craters: CraterArrays, r_mcmf_m: np.ndar
         row=row, matched_row=row[matched], u_true_body=u_true, rho_true_m=rho_true,
         u_meas_body=u_meas, rho_meas_m=rho_meas, pixel_uv=pixel, identified=identified,
         used=used, n_candidates=int(in_view.sum()), d_min_km=d_min_km,
-        corners_mcmf_m=_corners(model, r_mcmf_m, dcm_body_from_mcmf))
+        corners_mcmf_m=corners(model, r_mcmf_m, dcm_body_from_mcmf))
 
 
-def _corners(model: DetectionModel, r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray
-             ) -> np.ndarray:
+def corners(model: DetectionModel, r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray
+            ) -> np.ndarray:
     """The field's corner rays' surface points (4, 3) (MCMF, m; NaN where a ray misses)."""
     rays = model.fov.border_rays_body(1)
     if model.physical is not None:  # corner rays in camera axes, mounted on the body
@@ -180,6 +190,24 @@ class SensedFrame:
     corners_mcmf_m: np.ndarray  # (4, 3)
 
 
+def world_in_view(model: DetectionModel, craters: CraterArrays, world: sensor.World,
+                  r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The physical camera's candidates: catalogue rows of the tiled cap query, the mask of
+    those whose world crater is in the field of view and on the visible side, and their
+    centres in body and camera axes (m)."""
+    assert model.physical is not None
+    cam = model.physical.camera
+    boresight = cam.dcm_body_from_cam[:, 2] @ dcm_body_from_mcmf
+    centre, radius = camera.coverage_cap(r_mcmf_m, boresight, model.fov, model.moon_radius_m)
+    rows = tiling.query_cap(craters.index, centre, radius)
+    c_true = world.r_mcmf_m[rows]
+    p_body = (c_true - r_mcmf_m) @ dcm_body_from_mcmf.T
+    p_cam = p_body @ cam.dcm_body_from_cam  # the field of view is the camera's
+    in_view = model.fov.contains(p_cam) & camera.on_visible_side(c_true, r_mcmf_m)
+    return rows, in_view, p_body, p_cam
+
+
 def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.World,
                    r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
                    rngs: dict[str, np.random.Generator], sun_mcmf_m: np.ndarray) -> SensedFrame:
@@ -189,14 +217,10 @@ def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.W
     phys = model.physical
     assert phys is not None
     cam = phys.camera
-    boresight = cam.dcm_body_from_cam[:, 2] @ dcm_body_from_mcmf
-    centre, radius = camera.coverage_cap(r_mcmf_m, boresight, model.fov, model.moon_radius_m)
-    rows = tiling.query_cap(craters.index, centre, radius)
+    rows, in_view, p_body, p_cam = world_in_view(model, craters, world, r_mcmf_m,
+                                                 dcm_body_from_mcmf)
     dcm_cam_from_mcmf = cam.dcm_cam_from_body @ dcm_body_from_mcmf
     c_true, diam_true_m = world.r_mcmf_m[rows], world.diam_m[rows]
-    p_body = (c_true - r_mcmf_m) @ dcm_body_from_mcmf.T
-    p_cam = p_body @ cam.dcm_body_from_cam  # the field of view is the camera's
-    in_view = model.fov.contains(p_cam) & camera.on_visible_side(c_true, r_mcmf_m)
     # cheap bounds before the conics, each where the detection probability is 0 anyway: the
     # incidence outside the lit band, and rims whose image cannot reach the minimum size (a
     # disc's image is at most f D / (rho cos^2 alpha), alpha its angle off the boresight)
@@ -254,7 +278,7 @@ def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.W
         **{f"c_true_mcmf_{ax}_m": c_true[sel][:, i] for i, ax in enumerate("xyz")},
     }
     return SensedFrame(rows[sel], meas, true_sel, p_body[sel], columns, int(in_view.sum()),
-                       _corners(model, r_mcmf_m, dcm_body_from_mcmf))
+                       corners(model, r_mcmf_m, dcm_body_from_mcmf))
 
 
 def measure_physical(phys: PhysicalSensor, meas: sensor.EllipseMeasurement,

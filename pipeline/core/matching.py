@@ -84,21 +84,6 @@ def conic_vectors(conic: np.ndarray) -> np.ndarray:
     return np.where(ok[..., None], y, np.nan)
 
 
-def ellipses_from_vectors(y_px: np.ndarray) -> conics.Ellipses:
-    """The ellipse parameters (`conics.Ellipses`, its conventions) of ellipse vectors (N, 5) px:
-    the inverse of `ellipse_vectors`; valid False (NaN parameters) where S is not positive
-    definite."""
-    y = np.asarray(y_px, dtype=float)
-    mean = 0.5 * (y[..., 2] + y[..., 4])
-    half = np.hypot(0.5 * (y[..., 2] - y[..., 4]), y[..., 3])
-    angle = 0.5 * np.arctan2(2.0 * y[..., 3], y[..., 2] - y[..., 4])
-    angle = np.where(angle >= 0.5 * np.pi, angle - np.pi, angle)
-    valid = mean - half > 0
-    nan = np.where(valid, 1.0, np.nan)
-    return conics.Ellipses(y[..., :2] * nan[..., None], (mean + half) * nan, (mean - half) * nan,
-                           angle * nan, valid)
-
-
 def ellipse_vector_covariance(semi_major_px: np.ndarray, semi_minor_px: np.ndarray,
                               angle_rad: np.ndarray, sigma_px: float | np.ndarray) -> np.ndarray:
     """Covariance (N, 5, 5) px^2 of ellipse vectors under `sensor.measure_ellipses`'s noise:

@@ -173,11 +173,21 @@ def bearings_body(cam: PixelCamera, m: EllipseMeasurement, up_cam: np.ndarray | 
     return u_cam @ cam.dcm_body_from_cam.T
 
 
+# A rim's apparent-size range is at most ~f R / b (b the ellipse's semi-minor axis, the rim
+# foreshortened); ten times that is no rim's.
+APPARENT_SIZE_RANGE_LIMIT = 10.0
+
+
 def apparent_size_ranges(cam: PixelCamera, m: EllipseMeasurement, up_cam: np.ndarray,
                          radius_m: np.ndarray) -> np.ndarray:
     """Ranges (N,) (m) to the crater centres from the measured conics and the rims' radii (m):
-    the monocular method (the crater's known size against its apparent size)."""
-    return np.linalg.norm(conics.crater_centres_cam(m.conic, cam.k, up_cam, radius_m), axis=1)
+    the monocular method (the crater's known size against its apparent size). NaN where the
+    conic admits no such rim (no real circle, or a range beyond APPARENT_SIZE_RANGE_LIMIT times
+    the one its minor axis alone implies, f R / b: a near-degenerate conic, e.g. a false
+    detection's, not a rim)."""
+    rho = np.linalg.norm(conics.crater_centres_cam(m.conic, cam.k, up_cam, radius_m), axis=1)
+    limit = APPARENT_SIZE_RANGE_LIMIT * cam.fx_px * np.asarray(radius_m) / m.semi_minor_px
+    return np.where(rho <= limit, rho, np.nan)
 
 
 def apparent_size_range_sigma(rho_m: np.ndarray, semi_major_px: np.ndarray, sigma_px: float,

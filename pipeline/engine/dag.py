@@ -70,15 +70,16 @@ class Dag:
             raise PipelineError(f"unknown stage {name!r}; stages are {list(self.order)}")
         return self.stages[name]
 
-    def upstream_closure(self, names: Iterable[str]) -> list[str]:
-        """`names` and everything they may need (optional inputs too), in order."""
+    def upstream_closure(self, names: Iterable[str], cfg: RunConfig | None = None) -> list[str]:
+        """`names` and everything they need with this config (without one: may need), in
+        order."""
         need = set()
         todo = list(names)
         while todo:
             n = todo.pop()
             if n not in need:
                 need.add(self[n].name)
-                todo.extend(self._may_need(n))
+                todo.extend(self._may_need(n) if cfg is None else self.upstream_for(n, cfg))
         return [n for n in self.order if n in need]
 
     def downstream_of(self, name: str, cfg: RunConfig | None = None) -> list[str]:

@@ -49,8 +49,8 @@ class Stage:
 
     `reads` names the config it depends on as attribute paths of RunConfig ("detection",
     "estimation.methods", "seed"); `inputs`/`outputs` are artifact file names; `optional_inputs`
-    artifacts it reads only for the configs `uses_optional` accepts (their producers are then
-    upstream: keyed, checked, ordered before it); `code` the modules
+    artifacts it may read, `uses_optional` those it reads for a config (their producers are
+    then upstream: keyed, checked, ordered before it); `code` the modules
     whose sources (with their `pipeline` imports) key the cache; `external` a fingerprint of what
     lives outside the run folder (a catalogue file), `fresh_outside` its check at skip time and
     `verify` a last check just before the commit (e.g. the catalogue was not replaced meanwhile).
@@ -67,12 +67,17 @@ class Stage:
     fresh_outside: Callable[[RunConfig, str], bool] | None = None
     verify: Callable[[StageContext], None] | None = None
     optional_inputs: tuple[str, ...] = ()
-    uses_optional: Callable[[RunConfig], bool] | None = None
+    uses_optional: Callable[[RunConfig], tuple[str, ...]] | None = None
 
     def inputs_for(self, cfg: RunConfig) -> tuple[str, ...]:
         """The artifacts the stage reads for this config."""
-        used = self.uses_optional is not None and self.uses_optional(cfg)
-        return self.inputs + self.optional_inputs if used else self.inputs
+        if self.uses_optional is None:
+            return self.inputs
+        used = self.uses_optional(cfg)
+        unknown = set(used) - set(self.optional_inputs)
+        if unknown:
+            raise ValueError(f"stage {self.name!r}: {sorted(unknown)} are not optional inputs")
+        return self.inputs + tuple(i for i in self.optional_inputs if i in used)
 
     def config_parts(self, cfg: RunConfig) -> list[Any]:
         """The config values this stage reads, in declaration order."""

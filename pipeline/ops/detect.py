@@ -47,6 +47,15 @@ def model_of(d: DetectionConfig) -> DetectionModel:
         physical=physical_sensor(d) if d.sensor == "physical" else None)
 
 
+def true_poses(trajectory: pl.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """The true positions r_mcmf_m (F, 3) (m) and attitudes dcm_body_from_mcmf (F, 3, 3) of the
+    trajectory table's frames (the sensor's and the truth's: never the navigator's)."""
+    dcm_mci_from_body = rotations.dcm_from_q(quats(trajectory, "q_mci_from_body"))
+    theta = trajectory["theta_m_rad"].to_numpy()
+    return (xyz(trajectory, "r_mcmf", "_m"),
+            np.swapaxes(dcm_mci_from_body, -1, -2) @ frames.dcm_mci_from_mcmf(theta))
+
+
 def detect_all(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFrame, seed: int,
                advance=None, sun_mcmf_m: np.ndarray | None = None
                ) -> tuple[pl.DataFrame, pl.DataFrame]:
@@ -55,11 +64,8 @@ def detect_all(model: DetectionModel, craters: CraterArrays, trajectory: pl.Data
     elevation under the spacecraft and the ground sample distance (the physical sensor needs
     them)."""
     frame = trajectory["frame"].to_numpy()
-    theta = trajectory["theta_m_rad"].to_numpy()
     alt_m = trajectory["altitude_m"].to_numpy()
-    r_mcmf = xyz(trajectory, "r_mcmf", "_m")
-    dcm_mci_from_body = rotations.dcm_from_q(quats(trajectory, "q_mci_from_body"))
-    dcm_body_from_mcmf = np.swapaxes(dcm_mci_from_body, -1, -2) @ frames.dcm_mci_from_mcmf(theta)
+    r_mcmf, dcm_body_from_mcmf = true_poses(trajectory)
     world = None
     if model.physical is not None:  # the world's craters, drawn once for the whole catalogue
         world = sensor.world_craters(craters.r_mcmf_m, craters.diam_km * 1e3, craters.crater_id,

@@ -23,25 +23,39 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 import polars as pl
 
-from pipeline.core import camera, crater_index, frames, matching, rotations, sensor, tiling
+from pipeline.core import (
+    camera,
+    conics,
+    crater_index,
+    frames,
+    illumination,
+    matching,
+    render,
+    rotations,
+    sensor,
+    tiling,
+)
 from pipeline.core.constants import MOON_RADIUS_M
 from pipeline.core.detection import (
     CraterArrays,
+    Craters,
     DetectionModel,
     FrameDetections,
     PhysicalSensor,
+    corners,
     false_ellipses,
     frame_rngs,
     measure_physical,
     ranges,
     sense_physical,
+    world_in_view,
 )
 from pipeline.core.estimators import CheckOptions, RobustOptions, estimate_pose
 from pipeline.core.estimators.robust import chi2_gates
@@ -51,8 +65,8 @@ from pipeline.core.navigation import filter
 from pipeline.core.navigation.eskf import ATT, POS, POSE, NavState
 from pipeline.core.sensor import SensorNoise, measurement_sigmas
 from pipeline.core.status import Status
-from pipeline.io.tables import quats, xyz
-from pipeline.ops.detect import tables
+from pipeline.io.tables import xyz
+from pipeline.ops.detect import tables, true_poses
 from pipeline.ops.imu import stream
 from pipeline.ops.navigate import NavigateOptions, altimeter_samples, imu_samples, initial_state
 
@@ -124,26 +138,146 @@ class FrameResult:
     prior_sigma_px: float
 
 
+@dataclass(frozen=True)
+class Sensed:
+    """A frame's detections as the camera reports them (the measured rim ellipses), with the
+    truth kept apart for scoring: the world crater each came from (-1: a false detection), its
+    true bearing (body) and range (m; the ground's along a false one), and the truth columns
+    of `PHYSICAL_COLUMNS` but the measured ellipse and rho_size_m (NaN for a false one)."""
+
+    meas: sensor.EllipseMeasurement
+    truth_row: np.ndarray  # (n,)
+    u_true_body: np.ndarray  # (n, 3)
+    rho_true_m: np.ndarray  # (n,)
+    columns: dict[str, np.ndarray]
+    n_candidates: int
+    corners_mcmf_m: np.ndarray  # (4, 3)
+
+
+Sensing = Callable[[int, dict[str, np.random.Generator]], Sensed]  # frame index, its streams
+
+
+def model_sensing(model: DetectionModel, false_detection_share: float, seen: CraterArrays,
+                  r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray, sun_mcmf_m: np.ndarray
+                  ) -> Sensing:
+    """The physical sensor model's detections (`sense_physical`) of the world `seen` (its
+    craters with the catalogue errors) plus false detections (`false_ellipses`), per frame of
+    the truth r_mcmf_m (F, 3) m, dcm_body_from_mcmf (F, 3, 3) and the Sun sun_mcmf_m (F, 3) m."""
+    phys = model.physical
+    assert phys is not None
+    cam = phys.camera
+    world = sensor.world_craters(seen.r_mcmf_m, seen.diam_km * 1e3, seen.crater_id,
+                                 phys.catalogue_errors, phys.world_seed)
+
+    def sense(i: int, rngs: dict[str, np.random.Generator]) -> Sensed:
+        s = sense_physical(model, seen, world, r_mcmf_m[i], dcm_body_from_mcmf[i], rngs,
+                           sun_mcmf_m[i])
+        fake = false_ellipses(rngs["false"], s.row.size, false_detection_share,
+                              cam.width_px, cam.height_px, phys.detectability.min_diameter_px)
+        u_fake = sensor.bearings_body(cam, fake, None)
+        rho_fake = camera.ray_sphere_distance(r_mcmf_m[i], u_fake @ dcm_body_from_mcmf[i],
+                                              MOON_RADIUS_M)
+        pad = np.full(fake.semi_major_px.size, np.nan)
+        rho = np.linalg.norm(s.p_body_m, axis=1)
+        return Sensed(_concat(s.meas, fake), np.r_[s.row, np.full(pad.size, -1)],
+                      np.vstack([s.p_body_m / rho[:, None], u_fake]), np.r_[rho, rho_fake],
+                      {name: np.r_[col, pad] for name, col in s.columns.items()},
+                      s.n_candidates, s.corners_mcmf_m)
+
+    return sense
+
+
+def pixel_sensing(model: DetectionModel, pixel: pl.DataFrame, frame: np.ndarray,
+                  craters: CraterArrays, r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
+                  sun_mcmf_m: np.ndarray) -> Sensing:
+    """The crater detector's ellipses in the rendered images (`pipeline.ops.render`'s
+    detections table `pixel`) of each frame (none where no image was rendered), with the truth
+    of their match to the true rims: the world crater (the catalogue with its errors), its
+    bearing, range, lighting and the detection model's probability; frames' truth as in
+    `model_sensing`."""
+    phys = model.physical
+    assert phys is not None
+    cam = phys.camera
+    world = sensor.world_craters(craters.r_mcmf_m, craters.diam_km * 1e3, craters.crater_id,
+                                 phys.catalogue_errors, phys.world_seed)
+    pixel = pixel.sort("frame", "det_index")
+    at = np.searchsorted(pixel["frame"].to_numpy(), np.stack([frame, frame + 1]))
+    order = np.argsort(craters.crater_id)
+    ids = pixel["crater_id"].to_numpy()
+    pos = np.clip(np.searchsorted(craters.crater_id, ids, sorter=order), 0, order.size - 1)
+    truth_rows = np.where(ids >= 0, order[pos], -1)
+    columns = {c: pixel[c].to_numpy().astype(float) for c in (
+        "ellipse_u_px", "ellipse_v_px", "semi_major_px", "semi_minor_px", "ellipse_angle_rad",
+        "true_ellipse_u_px", "true_ellipse_v_px", "true_semi_major_px", "true_semi_minor_px",
+        "true_ellipse_angle_rad")}
+
+    def sense(i: int, rngs: dict[str, np.random.Generator]) -> Sensed:
+        a, b = int(at[0, i]), int(at[1, i])
+        col = {c: v[a:b] for c, v in columns.items()}
+        centre = np.column_stack([col["ellipse_u_px"], col["ellipse_v_px"]])
+        meas = sensor.EllipseMeasurement(
+            centre, col["semi_major_px"], col["semi_minor_px"], col["ellipse_angle_rad"],
+            conics.conic_from_ellipse(centre, col["semi_major_px"], col["semi_minor_px"],
+                                      col["ellipse_angle_rad"]))
+        row = truth_rows[a:b]
+        real = row >= 0
+        c_true = np.where(real[:, None], world.r_mcmf_m[np.maximum(row, 0)], np.nan)
+        p_body = (c_true - r_mcmf_m[i]) @ dcm_body_from_mcmf[i].T
+        u_true = sensor.bearings_body(cam, meas, None)  # a false one's: its ellipse centre's
+        rho_true = camera.ray_sphere_distance(r_mcmf_m[i], u_true @ dcm_body_from_mcmf[i],
+                                              MOON_RADIUS_M)
+        rho = np.linalg.norm(p_body, axis=1)
+        u_true[real] = p_body[real] / rho[real, None]
+        rho_true[real] = rho[real]
+        angles = illumination.crater_illumination_angles(c_true, r_mcmf_m[i], sun_mcmf_m[i])
+        diam_px = 2.0 * col["true_semi_major_px"]
+        p_model = np.where(real, sensor.detection_probability(
+            np.nan_to_num(diam_px), np.nan_to_num(angles.incidence_rad),
+            np.nan_to_num(angles.emission_rad), min(cam.width_px, cam.height_px),
+            phys.detectability), np.nan)
+        truth = {
+            **{c: v for c, v in col.items() if c.startswith("true_")},
+            "apparent_diam_px": diam_px,
+            "incidence_deg": np.degrees(angles.incidence_rad),
+            "emission_deg": np.degrees(angles.emission_rad),
+            "phase_deg": np.degrees(angles.phase_rad), "p_detect": p_model,
+            "true_diam_km": np.where(real, world.diam_m[np.maximum(row, 0)] / 1e3, np.nan),
+            **{f"c_true_mcmf_{ax}_m": c_true[:, k] for k, ax in enumerate("xyz")}}
+        _, in_view, _, _ = world_in_view(model, craters, world, r_mcmf_m[i],
+                                         dcm_body_from_mcmf[i])
+        return Sensed(meas, row, u_true, rho_true, truth, int(in_view.sum()),
+                      corners(model, r_mcmf_m[i], dcm_body_from_mcmf[i]))
+
+    return sense
+
+
+def rim_crests(craters: CraterArrays) -> CraterArrays:
+    """The catalogue as a navigator of rendered images holds it: each crater at the centre of
+    its rim crest, where the images show the rim, from the catalogue's craters' terrain (Pike's
+    fresh-crater shapes: the rim height, and the neighbours' bowls and ejecta under it,
+    `pipeline.core.render.rim_crests`): the catalogue with elevations from its digital elevation
+    model, as a flight catalogue carries them. The world differs by the catalogue's errors."""
+    c_m, _ = render.rim_crests(craters.r_mcmf_m, craters.diam_km * 1e3)
+    return Craters(craters.crater_id, craters.diam_km, c_m, craters.index)
+
+
 def identify_frames(model: DetectionModel, opts: IdentifyOptions, craters: CraterArrays,
-                    t_s: np.ndarray, frame: np.ndarray, theta_rad: np.ndarray,
+                    sensing: Sensing, t_s: np.ndarray, frame: np.ndarray, theta_rad: np.ndarray,
                     r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
                     sun_mcmf_m: np.ndarray, start: Tracker | None, imu: filter.ImuSamples,
                     altimeter: list[filter.AltimeterSample], v_rough_mci_m_s: np.ndarray,
                     indexes: IndexCache, seed: int,
-                    advance: Callable[[], None] | None = None,
-                    seen: CraterArrays | None = None) -> list[FrameResult]:
-    """Every frame's identification, in time order (the tracker's filter runs through them).
+                    advance: Callable[[], None] | None = None) -> list[FrameResult]:
+    """Every frame's identification of the detections `sensing` reports, in time order (the
+    tracker's filter runs through them), against the navigator's catalogue `craters`.
 
-    The truth (r_mcmf_m (F, 3) m, dcm_body_from_mcmf (F, 3, 3), sun_mcmf_m (F, 3) m) drives the
-    sensor and the star tracker only; `start` is the filter's initial state (None: lost);
-    `v_rough_mci_m_s` (F, 3) the rough velocity a lost-in-space fix starts the filter with.
-    `seen`: the craters the world holds, when not the navigator's catalogue `craters` (a
-    catalogue missing a region); the detections' truth rows are then its rows."""
+    The truth (r_mcmf_m (F, 3) m, dcm_body_from_mcmf (F, 3, 3)) gives the star tracker's
+    attitude and the rough position only; sun_mcmf_m (F, 3) (m) is the ephemeris' Sun; `start`
+    is the filter's initial state (None: lost); `v_rough_mci_m_s` (F, 3) the rough velocity a
+    lost-in-space fix starts the filter with."""
     phys = model.physical
     assert phys is not None
-    seen = craters if seen is None else seen
-    world = sensor.world_craters(seen.r_mcmf_m, seen.diam_km * 1e3, seen.crater_id,
-                                 phys.catalogue_errors, phys.world_seed)
+    cam = phys.camera
     rough_offset = _rough_offset(seed, opts.rough_position_error_m)
     tracker = start
     failures = 0
@@ -154,21 +288,8 @@ def identify_frames(model: DetectionModel, opts: IdentifyOptions, craters: Crate
         dcm_mci_from_mcmf = frames.dcm_mci_from_mcmf(theta_rad[i])
         if tracker is not None:
             tracker = _coast(tracker, float(t_s[i]), imu, altimeter, alt_times, opts)
-        s = sense_physical(model, seen, world, r_mcmf_m[i], dcm_body_from_mcmf[i], rngs,
-                           sun_mcmf_m[i])
-        cam = phys.camera
-        fake = false_ellipses(rngs["false"], s.row.size, opts.false_detection_share,
-                              cam.width_px, cam.height_px, phys.detectability.min_diameter_px)
-        meas = _concat(s.meas, fake)
-        truth_row = np.r_[s.row, np.full(fake.semi_major_px.size, -1)]
-        # the truth's range to each detection: the crater's, or the ground's along a false one
-        dcm_mcmf_from_body = dcm_body_from_mcmf[i].T
-        u_fake = sensor.bearings_body(cam, fake, None)
-        rho_fake = camera.ray_sphere_distance(r_mcmf_m[i], u_fake @ dcm_mcmf_from_body.T,
-                                              MOON_RADIUS_M)
-        rho_true = np.r_[np.linalg.norm(s.p_body_m, axis=1), rho_fake]
-        u_true = np.vstack([s.p_body_m / np.linalg.norm(s.p_body_m, axis=1, keepdims=True),
-                            u_fake])
+        s = sensing(i, rngs)
+        meas = s.meas
 
         t0, built_s = time.perf_counter(), indexes.build_s
         sigma_px = _prior_sigma_px(tracker, cam.fx_px) if tracker is not None else np.inf
@@ -220,27 +341,24 @@ def identify_frames(model: DetectionModel, opts: IdentifyOptions, craters: Crate
                    else dcm_body_from_mcmf[i])
         u_meas, rho_size = measure_physical(phys, meas, matched, craters,
                                             phys.camera.dcm_cam_from_body @ nav_att)
-        rho_meas = ranges(phys, model.sigma_range_m, rho_true, rho_size, rngs["noise"])
+        rho_meas = ranges(phys, model.sigma_range_m, s.rho_true_m, rho_size, rngs["noise"])
         rho_meas = np.where(matched >= 0, rho_meas, np.nan)
         pixel = phys.camera.project_body(u_meas)
         diam = craters.diam_km[np.maximum(matched, 0)]
         used = select_used(rngs["select"], identified, model.max_craters, model.selection,
                            diam, rho_meas, pixel, phys.camera.width_px)
-        true_ell = s.true
-        pad = np.full(fake.semi_major_px.size, np.nan)
-        columns = {name: np.r_[col, pad] for name, col in s.columns.items()}
-        columns.update({
-            "ellipse_u_px": meas.centre_px[:, 0], "ellipse_v_px": meas.centre_px[:, 1],
-            "semi_major_px": meas.semi_major_px, "semi_minor_px": meas.semi_minor_px,
-            "ellipse_angle_rad": meas.angle_rad, "rho_size_m": rho_size,
-            "apparent_diam_px": np.r_[2.0 * true_ell.semi_major_px, pad]})
+        columns = {**s.columns,
+                   "ellipse_u_px": meas.centre_px[:, 0], "ellipse_v_px": meas.centre_px[:, 1],
+                   "semi_major_px": meas.semi_major_px, "semi_minor_px": meas.semi_minor_px,
+                   "ellipse_angle_rad": meas.angle_rad, "rho_size_m": rho_size}
         det = FrameDetections(
-            row=truth_row, matched_row=matched, u_true_body=u_true, rho_true_m=rho_true,
+            row=s.truth_row, matched_row=matched, u_true_body=s.u_true_body,
+            rho_true_m=s.rho_true_m,
             u_meas_body=u_meas, rho_meas_m=rho_meas, pixel_uv=pixel, identified=identified,
             used=used, n_candidates=s.n_candidates, d_min_km=float("nan"),
             corners_mcmf_m=s.corners_mcmf_m, physical=columns)
-        out.append(FrameResult(det, mode, confidence, truth_row < 0, ok, elapsed_ms, index_ms,
-                               float(sigma_px)))
+        out.append(FrameResult(det, mode, confidence, s.truth_row < 0, ok, elapsed_ms,
+                               index_ms, float(sigma_px)))
         if advance is not None:
             advance()
     return out
@@ -386,8 +504,7 @@ def _lost_in_space(meas: sensor.EllipseMeasurement, r_rough_mci_m: np.ndarray, r
     hyps = indexes.hypotheses(meas, cam, dcm_mcmf_from_cam, r_rough_mcmf, radius_m,
                               opts.query_detections)
     q = rotations.q_from_dcm(dcm_mci_from_body)
-    best: _Match | None = None
-    runner_up = 0
+    fixes: list[tuple[int, _Match]] = []  # verified, distinct
     for r_cam_mcmf, _support in hyps:
         r_mci = dcm_mci_from_mcmf @ r_cam_mcmf
         altitude = float(np.linalg.norm(r_mci)) - MOON_RADIUS_M
@@ -395,21 +512,14 @@ def _lost_in_space(meas: sensor.EllipseMeasurement, r_rough_mci_m: np.ndarray, r
         pose_cov = np.diag([sigma**2] * 3 + [opts.star_tracker_sigma_rad**2 + 1e-10] * 3)
         m = _track(meas, r_mci, q, pose_cov, dcm_mci_from_mcmf, sun_mcmf_m, craters, model, opts,
                    rng)
-        count = int(m.identified.sum()) if m.ok else 0
-        if best is not None and m.ok and np.linalg.norm(m.r_mci_m - best.r_mci_m) < sigma:
-            continue  # the same fix found again
-        if best is None or count > int(best.identified.sum()) * (best.ok):
-            runner_up = int(best.identified.sum()) if best is not None and best.ok else runner_up
-            best = m
-        else:
-            runner_up = max(runner_up, count)
-    if best is None or not best.ok:
-        return best
-    if runner_up > AMBIGUITY_RATIO * int(best.identified.sum()):
-        return _Match(best.matched_row, best.confidence, best.identified, False, best.r_mci_m,
-                      best.q_mci_from_body, best.cov, best.c_mci_m, best.u_body, best.rho_m,
-                      best.sigma_bearing, best.sigma_range_m, best.dcm_body_from_mcmf)
-    return best
+        if m.ok and all(np.linalg.norm(m.r_mci_m - f.r_mci_m) >= sigma for _, f in fixes):
+            fixes.append((int(m.identified.sum()), m))
+    if not fixes:
+        return None
+    fixes.sort(key=lambda f: -f[0])
+    count, best = fixes[0]
+    rival = fixes[1][0] if len(fixes) > 1 else 0
+    return replace(best, ok=False) if rival > AMBIGUITY_RATIO * count else best
 
 
 def _coast(tr: Tracker, t_s: float, imu: filter.ImuSamples,
@@ -520,17 +630,17 @@ def identify_all(model: DetectionModel, opts: IdentifyOptions, nav: NavigateOpti
                  craters: CraterArrays, trajectory: pl.DataFrame, sun_mcmf_m: np.ndarray,
                  imu_table: pl.DataFrame, truth: pl.DataFrame, altimeter: pl.DataFrame,
                  indexes: IndexCache, seed: int,
-                 advance: Callable[[], None] | None = None
+                 advance: Callable[[], None] | None = None, pixel: pl.DataFrame | None = None
                  ) -> tuple[pl.DataFrame, pl.DataFrame]:
     """The detections and frames tables of an identification run (`identify_frames`), with
-    identification's columns. The tracker's filter starts as the navigation filter does
-    (`navigation.init` dispersed: the same draw), or lost (first_fix, and lost_in_space)."""
+    identification's columns; the detections are the sensor model's, or with `pixel` those
+    of the crater detector in the rendered images (`pixel_sensing`). The tracker's filter
+    starts as the navigation filter does (`navigation.init` dispersed: the same draw), or lost
+    (first_fix, and lost_in_space)."""
     frame = trajectory["frame"].to_numpy()
     t_s = trajectory["t_s"].to_numpy()
     theta = trajectory["theta_m_rad"].to_numpy()
-    r_mcmf = xyz(trajectory, "r_mcmf", "_m")
-    dcm_mci_from_body = rotations.dcm_from_q(quats(trajectory, "q_mci_from_body"))
-    dcm_body_from_mcmf = np.swapaxes(dcm_mci_from_body, -1, -2) @ frames.dcm_mci_from_mcmf(theta)
+    r_mcmf, dcm_body_from_mcmf = true_poses(trajectory)
     start = None
     if opts.mode != "lost_in_space" and nav.init == "dispersed":
         t0, x0, p0, _ = initial_state(nav, truth, pl.DataFrame(), seed)
@@ -540,12 +650,20 @@ def identify_all(model: DetectionModel, opts: IdentifyOptions, nav: NavigateOpti
         raise ValueError("the IMU's truth table lacks some frame times")
     v_error = nav.init_sigma_velocity_m_s * stream(seed, _ROUGH_TAG + 1).standard_normal(3)
     v_rough = xyz(at_frames, "v_mci", "_m_s") + v_error
+    navigator = craters
+    if pixel is None:
+        sensing = model_sensing(model, opts.false_detection_share, craters, r_mcmf,
+                                dcm_body_from_mcmf, sun_mcmf_m)
+    else:
+        sensing = pixel_sensing(model, pixel, frame, craters, r_mcmf, dcm_body_from_mcmf,
+                                sun_mcmf_m)
+        navigator = rim_crests(craters)
     results = identify_frames(
-        model, opts, craters, t_s, frame, theta, r_mcmf, dcm_body_from_mcmf, sun_mcmf_m, start,
-        imu_samples(imu_table, nav.imu_rate_hz),
+        model, opts, navigator, sensing, t_s, frame, theta, r_mcmf, dcm_body_from_mcmf,
+        sun_mcmf_m, start, imu_samples(imu_table, nav.imu_rate_hz),
         altimeter_samples(nav, altimeter) if nav.altimeter_updates else [], v_rough, indexes,
         seed, advance)
-    detections, frames_table = tables(model, craters, trajectory,
+    detections, frames_table = tables(model, navigator, trajectory,
                                       [r.detections for r in results], sun_mcmf_m)
     per_det, per_frame = frame_columns(results)
     return (detections.with_columns(**per_det), frames_table.with_columns(**per_frame))

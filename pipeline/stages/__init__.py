@@ -8,10 +8,20 @@ from the artifacts it reads and writes.
 from __future__ import annotations
 
 from pipeline.engine.dag import Dag
-from pipeline.stages import detect, estimate, imu, ingest, navigate, score, sweep, trajectory
+from pipeline.stages import (
+    detect,
+    estimate,
+    imu,
+    ingest,
+    navigate,
+    render,
+    score,
+    sweep,
+    trajectory,
+)
 
-STAGES = (ingest.STAGE, trajectory.STAGE, imu.STAGE, detect.STAGE, estimate.STAGE, navigate.STAGE,
-          score.STAGE, sweep.STAGE)
+STAGES = (ingest.STAGE, trajectory.STAGE, imu.STAGE, render.STAGE, detect.STAGE, estimate.STAGE,
+          navigate.STAGE, score.STAGE, sweep.STAGE)
 DAG = Dag(STAGES)
 
 RUN_TARGET = "score"  # `just run` brings this stage and everything it needs up to date

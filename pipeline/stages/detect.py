@@ -25,6 +25,16 @@ from pipeline.stages.estimate import options as estimate_options
 from pipeline.stages.navigate import options as navigate_options
 from pipeline.viz import recording
 
+IMU_INPUTS = ("imu.parquet", "imu_truth.parquet", "altimeter.parquet")
+
+
+def optional_inputs(cfg: RunConfig) -> tuple[str, ...]:
+    """What detection reads beyond the catalogue and the trajectory: the IMU and the altimeter
+    when identification runs the navigation filter, the detections in the rendered images when
+    they are the source."""
+    imu = IMU_INPUTS if cfg.identification.mode != "simulated" else ()
+    return imu + (("pixel_detections.parquet",) if cfg.detection.source == "pixels" else ())
+
 
 def identify_options(cfg: RunConfig) -> IdentifyOptions:
     """Identification's options of a run: its config, the navigator's assumed sensor noise, the
@@ -72,7 +82,9 @@ def run(ctx: StageContext) -> StageResult:
                 model, identify_options(cfg), navigate_options(cfg), craters, trajectory, sun,
                 pl.read_parquet(ctx.input("imu.parquet")),
                 pl.read_parquet(ctx.input("imu_truth.parquet")),
-                pl.read_parquet(ctx.input("altimeter.parquet")), indexes, cfg.seed, advance)
+                pl.read_parquet(ctx.input("altimeter.parquet")), indexes, cfg.seed, advance,
+                pl.read_parquet(ctx.input("pixel_detections.parquet"))
+                if cfg.detection.source == "pixels" else None)
     tx.table("detections", detections)
     tx.table("frames", frames_table)
     with recording.recording(ctx.store.run_id, tx.output("detection.rrd")) as rec:
@@ -103,9 +115,8 @@ STAGE = Stage(
     reads=("detection", "identification", "identification_navigator", "trajectory.epoch_utc",
            "seed"),
     inputs=("catalogue.json", "trajectory.parquet"),
-    # identification by algorithm runs the navigation filter: the IMU and the altimeter
-    optional_inputs=("imu.parquet", "imu_truth.parquet", "altimeter.parquet"),
-    uses_optional=lambda cfg: cfg.identification.mode != "simulated",
+    optional_inputs=(*IMU_INPUTS, "pixel_detections.parquet"),
+    uses_optional=optional_inputs,
     outputs=("detections.parquet", "frames.parquet", "detection.rrd"),
     code=("pipeline.stages.detect",),
     run=run,

@@ -30,6 +30,8 @@ from pipeline.ops.score import (
 )
 from pipeline.viz import recording, report
 
+RENDER_INPUTS = ("render.json", "detection_recall.parquet", "images.parquet")
+
 
 def catalogue_lookup(db_path: Path) -> CraterLookup:
     """Crater ids -> MCMF positions (m), read from the catalogue database on demand."""
@@ -83,10 +85,15 @@ def run(ctx: StageContext) -> StageResult:
     with recording.recording(ctx.store.run_id, tx.output("scoring.rrd")) as rec:
         recording.log_scoring(rec, scores)
     recording.save_layout(tx.output("layout.rbl"), scores)
+    rendering = None
+    if cfg.render.enabled:
+        rendering = (json.loads(ctx.input("render.json").read_text()),
+                     pl.read_parquet(ctx.input("detection_recall.parquet")),
+                     pl.read_parquet(ctx.input("images.parquet")))
     report.write_run_report(tx, cfg, ctx.store.run_id, trajectory, frames_table, scores, summary,
                             t_impact, by_used=by_used, navigation=navigation,
                             nav_summary=nav_summary, identification=identification,
-                            by_detections=by_detections)
+                            by_detections=by_detections, rendering=rendering)
     folder = ctx.store.stage_dir("score")
     return StageResult(
         info={"t_impact_s": t_impact, "table_window": cfg.scoring.table_window},
@@ -139,13 +146,15 @@ def headline(cfg: RunConfig, store: RunStore) -> str:
 STAGE = Stage(
     name="score",
     doc="errors, Cramér-Rao bound, NEES, windows, figures, report.md",
-    reads=("scoring", "detection", "identification"),
+    reads=("scoring", "detection", "identification", "render"),
     inputs=("trajectory.parquet", "trajectory.json", "catalogue.json", "detections.parquet",
             "frames.parquet", "estimates.parquet", "navigation.parquet"),
     outputs=("scores.parquet", "summary.parquet", "by_craters_used.parquet",
              "navigation_summary.parquet", "identification.parquet", "scoring.rrd", "layout.rbl",
              "report.md"),
     code=("pipeline.stages.score",),
+    optional_inputs=RENDER_INPUTS,
+    uses_optional=lambda cfg: RENDER_INPUTS if cfg.render.enabled else (),
     run=run,
     verify=lambda ctx: check_catalogue_unchanged(ctx.input("catalogue.json")),
 )

@@ -326,6 +326,42 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
         log_identification(rec, frames_table)
 
 
+IMAGE_ENTITY = "/camera_image"  # the rendered images (2D, the recording's size in px)
+IMAGE_RIM_STATES = {"matched": (60, 220, 90), "false": (240, 40, 220), "missed": (255, 170, 0)}
+
+
+def log_images(rec: rr.RecordingStream, per_image, jpegs: list[bytes], image_size_px: int,
+               size_px: int, detections, truth) -> None:
+    """The rendered images (JPEG, size_px a side) per rendered frame at IMAGE_ENTITY, with the
+    detected ellipses matched to a true rim or to none and the true rims of 10 px or more that
+    were missed (`pipeline.ops.render`'s tables), scaled to the image's size."""
+    import polars as pl
+
+    if not jpegs:
+        return
+    frame = per_image["frame"].to_numpy()
+    t_s = per_image["t_s"].to_numpy()
+    rec.send_columns(IMAGE_ENTITY, indexes=time_columns(frame, t_s),
+                     columns=rr.EncodedImage.columns(blob=jpegs,
+                                                     media_type=["image/jpeg"] * len(jpegs)))
+    scale = size_px / image_size_px
+    missed = truth.filter(~pl.col("detected") & (pl.col("apparent_diam_px") >= 10.0))
+    rims = {"matched": (detections.filter(pl.col("crater_id") >= 0), ""),
+            "false": (detections.filter(pl.col("crater_id") < 0), ""),
+            "missed": (missed, "true_")}
+    for state, (table, prefix) in rims.items():
+        u, v, a, b, angle = (table[f"{prefix}{c}"].to_numpy().astype(float) * (
+            1.0 if c.endswith("rad") else scale) for c in ELLIPSE_COLUMNS["measured"])
+        per_frame = np.searchsorted(table["frame"].to_numpy(), frame, side="right") \
+            - np.searchsorted(table["frame"].to_numpy(), frame, side="left")
+        points, offsets = ellipse_polygons(u, v, a, b, angle, ellipse_segments(a))
+        entity = f"{IMAGE_ENTITY}/rims/{state}"
+        rec.log(entity, rr.LineStrips2D.from_fields(colors=[IMAGE_RIM_STATES[state]],
+                                                    radii=rr.components.Radius.ui_points(1.0)),
+                static=True)
+        send_strips_2d(rec, entity, frame, t_s, per_frame, points, offsets)
+
+
 IDENTIFICATION_ENTITY = "/identification"
 
 

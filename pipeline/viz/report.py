@@ -298,12 +298,14 @@ def write_run_report(tx, cfg: RunConfig, run_id: str, trajectory: pl.DataFrame,
                      study: Study = STUDY, navigation: pl.DataFrame | None = None,
                      nav_summary: pl.DataFrame | None = None,
                      identification: pl.DataFrame | None = None,
-                     by_detections: pl.DataFrame | None = None) -> None:
+                     by_detections: pl.DataFrame | None = None,
+                     rendering: tuple[dict, pl.DataFrame, pl.DataFrame] | None = None) -> None:
     """report.md and its figures, written through the stage transaction (`tx.output(name)`
     gives the path to write `name` to). `by_used` is `by_craters_used(scores)` (computed here
     when not given); `navigation` and `nav_summary` (the filter's table and
     `summarize_navigation`) add the navigation section; `identification` and `by_detections`
-    (`summarize_identification`, `identification_by_detections`) the identification section."""
+    (`summarize_identification`, `identification_by_detections`) the identification section;
+    `rendering` (the render stage's facts, recall and images tables) the rendering section."""
     d = cfg.detection
     cap = "no limit" if d.max_craters is None else f"{d.max_craters} ({d.selection})"
     by_used = by_craters_used(scores) if by_used is None else by_used
@@ -359,7 +361,61 @@ seconds before impact); here each bin of craters used stands alone. Cells: RMSE 
         text += navigation_section(cfg, nav_summary, summary)
     if identification is not None:
         text += identification_section(cfg, identification, by_detections)
+    if rendering is not None:
+        text += rendering_section(*rendering)
     tx.output("report.md").write_text(text)
+
+
+def rendering_section(facts: dict, recall: pl.DataFrame, per_image: pl.DataFrame) -> str:
+    """The report's section on the rendered images (stage `render`): the contact sheet, the
+    detector's headline numbers, recall by apparent size and solar incidence beside the
+    detection model's prediction, and the model's detectability calibrated on the pixels."""
+    if not facts.get("frames"):
+        return ""
+    inc = recall.select("incidence_bin").unique(maintain_order=True)["incidence_bin"].to_list()
+    head = ("| apparent diameter (px) | " + " | ".join(f"incidence {b} deg" for b in inc)
+            + " |\n|---|" + "---|" * len(inc))
+    rows = []
+    for d in recall.select("diam_bin").unique(maintain_order=True)["diam_bin"].to_list():
+        cells = []
+        for b in inc:
+            r = recall.filter((pl.col("diam_bin") == d) & (pl.col("incidence_bin") == b))
+            n = int(r["n_true"][0]) if r.height else 0
+            cells.append("" if n == 0 else f"{r['recall'][0]:.2f} ({r['p_model_mean'][0]:.2f}; "
+                         f"{n:,})")
+        rows.append(f"| {d} | " + " | ".join(cells) + " |")
+    model, fitted = facts.get("model_detectability"), facts.get("calibrated_detectability")
+    calibration = ""
+    if model and fitted:
+        lines = [f"| {k} | {model[k]} | {_round(fitted[k])} |" for k in model
+                 if model[k] != fitted[k]]
+        calibration = ("\nThe detection model's parameters fitted to the pixels (maximum "
+                       "likelihood of the detected flags; those the data do not constrain "
+                       "unchanged):\n\n| parameter | model | calibrated |\n|---|---|---|\n"
+                       + "\n".join(lines) + "\n")
+    return f"""
+## Rendered images and craters detected in their pixels
+
+![contact sheet](../render/contact_sheet.png)
+
+{facts['frames']:,} images rendered: recall {_pct(facts['recall_10px_inc30_80'], 1)} of the
+{int(facts['n_truth_10px_inc30_80']):,} true rims of 10 px or more at incidence 30-80 deg,
+precision {_pct(facts['precision'], 1)} ({_fmt(facts['false_per_image'])} false detections
+per image), median centre error {_fmt(facts['centre_error_px_median'])} px, median diameter
+error {_fmt(facts['diameter_error_pct_median_abs'])} % (absolute); {_fmt(facts['render_ms_median'])}
+ms to render and {_fmt(facts['detect_ms_median'])} ms to detect per image (median over
+{per_image.height:,}).
+
+Recall by apparent diameter and solar incidence; in brackets the detection model's predicted
+probability (the sensor model of `detection.sensor = "physical"`) and the number of true rims:
+
+{head}
+{chr(10).join(rows)}
+{calibration}"""
+
+
+def _round(x: float | list[float]) -> str:
+    return ", ".join(f"{v:.3g}" for v in x) if isinstance(x, list) else f"{x:.3g}"
 
 
 def identification_section(cfg: RunConfig, ident: pl.DataFrame,

@@ -9,7 +9,7 @@ and Eq. 9 evaluated with `math.exp`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.core import camera, tiling
 from pipeline.core.constants import MOON_RADIUS_M as R
-from pipeline.core.detection import DetectionModel, detect_frame, frame_rngs
+from pipeline.core.detection import Craters, DetectionModel, detect_frame, frame_rngs
 
 ORDER = 6
 LAT0, LON0 = 12.3, -41.7  # centre of the crater grid (deg)
@@ -30,14 +30,6 @@ PAPER = DetectionModel(
     sigma_range_m=10.0, moon_radius_m=R)
 # Geometry only: every crater above 0.1 km is visible at any altitude.
 FLAT = replace(PAPER, visibility_a=0.1, visibility_b_per_km=0.0)
-
-
-@dataclass(frozen=True)
-class Craters:
-    crater_id: np.ndarray
-    diam_km: np.ndarray
-    r_mcmf_m: np.ndarray
-    index: tiling.TileIndex
 
 
 def unit_of(lat_deg, lon_deg) -> np.ndarray:

@@ -237,8 +237,9 @@ class JointEstimator(Estimator):
             except np.linalg.LinAlgError:
                 return failed(Status.DEGENERATE, use, k)
             step = h_inv @ (jac_rows.T @ e.reshape(-1))
-            if not np.all(np.isfinite(step)):
-                return failed(Status.DEGENERATE, use, k)
+            with np.errstate(over="ignore"):  # finite entries can overflow the norm
+                if not np.isfinite(float(step @ step)):
+                    return failed(Status.DEGENERATE, use, k)
             x_full = x + step[:3]
             q_full = q_multiply(q, q_exp(step[3:]))
             q_full /= math.sqrt(float(q_full @ q_full))

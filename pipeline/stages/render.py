@@ -1,0 +1,136 @@
+"""Stage `render`: the camera's pictures of chosen frames and the craters detected in them.
+
+Renders the world's craters (the catalogue with its errors) under the ephemeris Sun through the
+physical camera (`pipeline.core.render`), detects rim ellipses in the pixels
+(`pipeline.core.crater_detect`) and matches them to the true rims, for scoring only
+(`pipeline.ops.render`). Writes pixel_detections.parquet (one row per detection), rendered_
+craters.parquet (one row per true rim in view), images.parquet (per image), detection_recall.
+parquet (recall by apparent size and incidence beside the detection model's prediction),
+render.json (the headline numbers and the detection model calibrated on the pixels),
+contact_sheet.png and render.rrd (the images, JPEG, with the true and detected rims).
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import polars as pl
+
+from pipeline.config import RunConfig
+from pipeline.core import render, sensor
+from pipeline.engine.progress import progress_bar
+from pipeline.engine.stage import Stage, StageContext, StageResult
+from pipeline.io import ephemeris
+from pipeline.io.catalogue_db import check_catalogue_unchanged, load_recorded_catalogue
+from pipeline.ops import render as ops_render
+from pipeline.ops.detect import model_of, true_poses
+from pipeline.viz import images, recording
+
+RENDER_TAG = 0x12E4D  # the rendering's streams (roughness, sensor noise) within the run seed
+CONTACT_SHEET_FRAMES = 4
+
+
+def options(cfg: RunConfig) -> ops_render.RenderOptions:
+    """What the renderer and the detector do (config `render`, the detector's minimum size from
+    `detection.detect_min_diameter_px`)."""
+    r = cfg.render
+    return ops_render.RenderOptions(
+        terrain=render.TerrainOptions(albedo=r.albedo,
+                                      roughness_rms_slope_deg=r.roughness_rms_slope_deg),
+        sensor=render.SensorOptions(read_noise_e=r.read_noise_e, full_well_e=r.full_well_e,
+                                    bits=r.bits, blur_sigma_px=r.blur_sigma_px),
+        detect=ops_render.detect_options(cfg.detection.detect_min_diameter_px, r.blur_sigma_px))
+
+
+def rendered_frames(cfg: RunConfig, trajectory: pl.DataFrame) -> pl.DataFrame:
+    """The trajectory rows rendered: every stride-th frame in [start_s, end_s]."""
+    r = cfg.render
+    if r.start_s is None or r.end_s is None:
+        return trajectory.head(0)
+    inside = trajectory.filter((pl.col("t_s") >= r.start_s) & (pl.col("t_s") <= r.end_s))
+    return inside.gather_every(r.stride)
+
+
+def run(ctx: StageContext) -> StageResult:
+    cfg, tx = ctx.cfg, ctx.tx
+    trajectory = pl.read_parquet(ctx.input("trajectory.parquet"))
+    chosen = rendered_frames(cfg, trajectory)
+    craters = load_recorded_catalogue(ctx.input("catalogue.json"))
+    model = model_of(cfg.detection)
+    opts = options(cfg)
+    phys = model.physical
+    results = []
+    jpegs: list[bytes] = []
+    sheet = set(np.linspace(0, max(chosen.height - 1, 0), CONTACT_SHEET_FRAMES).astype(int)
+                .tolist()) if chosen.height else set()
+    sheet_images = []
+    if chosen.height:
+        assert phys is not None and cfg.trajectory.epoch_utc is not None  # the config checks
+        world = sensor.world_craters(craters.r_mcmf_m, craters.diam_km * 1e3, craters.crater_id,
+                                     phys.catalogue_errors, phys.world_seed)
+        t_s = chosen["t_s"].to_numpy()
+        sun = ephemeris.sun_mcmf_m(cfg.trajectory.epoch_utc, t_s)
+        r_mcmf, dcm_body_from_mcmf = true_poses(chosen)
+        frame = chosen["frame"].to_numpy()
+        with progress_bar("rendering and detecting", chosen.height) as advance:
+            for i in range(chosen.height):
+                rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(
+                    cfg.seed, spawn_key=(RENDER_TAG, int(frame[i])))))
+                img = ops_render.render_and_detect(model, craters, world, r_mcmf[i],
+                                                   dcm_body_from_mcmf[i], sun[i], rng, opts)
+                results.append((int(frame[i]), float(t_s[i]), img))
+                jpegs.append(images.encode_jpeg(img.image, cfg.render.recording_size_px))
+                if i in sheet:
+                    sheet_images.append((int(frame[i]), float(t_s[i]), img))
+                advance()
+    truth = ops_render.truth_table(results, craters.crater_id)
+    detections = ops_render.detections_table(results, craters.crater_id)
+    per_image = ops_render.images_table(results)
+    recall = ops_render.recall_table(truth, detections)
+    facts = {"frames": len(results), **ops_render.headline(truth, detections, per_image)}
+    if phys is not None and truth.height:
+        fitted = ops_render.calibrate_detectability(truth, phys.detectability,
+                                                    image_side_px=cfg.detection.image_size_px)
+        facts["calibrated_detectability"] = ops_render.detectability_facts(fitted)
+        facts["model_detectability"] = ops_render.detectability_facts(phys.detectability)
+    tx.table("pixel_detections", detections)
+    tx.table("rendered_craters", truth)
+    tx.table("images", per_image)
+    tx.table("detection_recall", recall)
+    tx.output("render.json").write_text(json.dumps(facts, indent=2) + "\n")
+    images.contact_sheet(tx.output("contact_sheet.png"), sheet_images,
+                         f"Rendered frames with true and detected rims ({ctx.store.run_id})")
+    with recording.recording(ctx.store.run_id, tx.output("render.rrd")) as rec:
+        recording.log_images(rec, per_image, jpegs, cfg.detection.image_size_px,
+                             cfg.render.recording_size_px, detections, truth)
+    folder = ctx.store.stage_dir("render")
+    size_mb = tx.output("render.rrd").stat().st_size / 2**20
+    line = (f"{facts['recall_10px_inc30_80']:.1%} recall (>= 10 px, incidence 30-80 deg), "
+            f"{facts['precision']:.1%} precision, median centre error "
+            f"{facts['centre_error_px_median']:.2f} px" if results else "no frame rendered "
+            "(render.start_s, end_s)")
+    return StageResult(info=facts, summary=(
+        f"wrote {folder / 'pixel_detections.parquet'}, rendered_craters.parquet, images.parquet,"
+        f" detection_recall.parquet ({len(results):,} images; {line})",
+        f"wrote {folder / 'contact_sheet.png'} and {folder / 'render.rrd'} ({size_mb:.1f} MiB)",
+        f"ask it: just sql --run {ctx.store.run_id} \"SELECT * FROM detection_recall\"",
+        f"look at it: rerun {folder / 'render.rrd'}",
+    ))
+
+
+STAGE = Stage(
+    name="render",
+    doc="camera images of chosen frames, craters detected in their pixels",
+    reads=("render", *(f"detection.{k}" for k in (
+        "sensor", "fov_deg", "fov_convention", "image_size_px", "distortion",
+        "camera_mounting_deg", "detect_min_diameter_px", "catalogue_sigma_horizontal_m",
+        "catalogue_sigma_height_m", "catalogue_sigma_diameter_share", "world_seed")),
+           "trajectory.epoch_utc", "seed"),
+    inputs=("catalogue.json", "trajectory.parquet"),
+    outputs=("pixel_detections.parquet", "rendered_craters.parquet", "images.parquet",
+             "detection_recall.parquet", "render.json", "contact_sheet.png", "render.rrd"),
+    code=("pipeline.stages.render",),
+    run=run,
+    verify=lambda ctx: check_catalogue_unchanged(ctx.input("catalogue.json")),
+)
