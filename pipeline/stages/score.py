@@ -139,6 +139,16 @@ def headline(cfg: RunConfig, store: RunStore) -> str:
             f"{row['mean_nees_pos']:.2f}, att {row['mean_nees_att']:.2f})")
     elif nav.height:
         lines.append(f"  filter {w.name}: no record (the window is outside the run's frames)")
+    ident = (pl.read_parquet(store.path("identification.parquet")).filter(
+        (pl.col("window") == w.name) & (pl.col("mode") == "all"))
+        if cfg.identification.mode != "simulated" else pl.DataFrame())
+    if ident.height and ident["identified"][0]:
+        row = ident.row(0, named=True)
+        lines.append(
+            f"  identification ({cfg.identification.mode}) {w.name}: "
+            f"{row['share_correct']:.2%} of the real detections right, {row['wrong']:,} wrong "
+            f"({row['share_wrong']:.3%} of the identified), {row['share_frames_with_fix']:.0%} "
+            f"of frames fixed, {row['median_ms']:.1f} ms per frame")
     lines.append(f"look at it: just view {store.run_id}")
     return "\n".join(lines)
 

@@ -14,8 +14,9 @@ import polars as pl
 import pytest
 from conftest import run_stages, small_config
 
-from pipeline.config import ConfigError
+from pipeline.config import ConfigError, RunConfig
 from pipeline.io.store import RunStore
+from pipeline.stages.score import headline
 
 WINDOW = {"start_s": 1900.0, "end_s": 1930.0, "frame_rate_hz": 1.0}
 N_FRAMES = 31
@@ -27,13 +28,17 @@ CAMERA = {"sensor": "physical", "pixel_sigma_px": 0.3, "bearing": "corrected",
 TO_SCORE = ("ingest", "trajectory", "imu", "detect", "estimate", "navigate", "score")
 
 
+def config(root: Path, db: Path, run_id: str, identification: dict,
+           navigation: dict | None = None) -> RunConfig:
+    return small_config(run_id, db, WINDOW, trajectory=EPOCH, detection=CAMERA,
+                        estimation={"catalogue_sigmas": "truth"},
+                        identification={"index_dir": str(root / "index"), **identification},
+                        navigation=navigation or {})
+
+
 def run(root: Path, db: Path, run_id: str, identification: dict,
         navigation: dict | None = None) -> RunStore:
-    cfg = small_config(run_id, db, WINDOW, trajectory=EPOCH, detection=CAMERA,
-                       estimation={"catalogue_sigmas": "truth"},
-                       identification={"index_dir": str(root / "index"), **identification},
-                       navigation=navigation or {})
-    run_stages(cfg, root, TO_SCORE)
+    run_stages(config(root, db, run_id, identification, navigation), root, TO_SCORE)
     return RunStore(run_id, root)
 
 
@@ -115,7 +120,8 @@ def test_lost_start_fixes_by_the_invariant_index_then_tracks(lost_run: RunStore,
     assert len(list((lost_run.root / "index").glob("pairs-*.npz"))) == 1
 
 
-def test_identification_is_scored_per_window_and_mode(lost_run: RunStore) -> None:
+def test_identification_is_scored_per_window_and_mode(lost_run: RunStore,
+                                                     catalogue_db: Path) -> None:
     ident = table(lost_run, "identification").filter(pl.col("window") == "1800-2400 s")
     assert ident["mode"].to_list() == ["all", "lost_in_space", "tracking"]
     det = table(lost_run, "detections")
@@ -130,6 +136,10 @@ def test_identification_is_scored_per_window_and_mode(lost_run: RunStore) -> Non
     assert ident.row(1, named=True)["frames_with_detections"] == 1  # the lost start
     report = lost_run.path("report.md").read_text()
     assert "## Crater identification" in report and "| lost_in_space |" in report
+    cfg = config(lost_run.root, catalogue_db, "lost", {"mode": "tracking_lis"})
+    line = headline(cfg, lost_run).splitlines()[-2]
+    assert line.startswith("  identification (tracking_lis) 1800-2400 s: ")
+    assert f"{row['share_correct']:.2%} of the real detections right" in line
 
 
 def test_identification_needs_the_physical_sensor(catalogue_db: Path) -> None:
