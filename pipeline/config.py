@@ -720,7 +720,9 @@ class RenderConfig:
                    f"= {self.end_s:g} s must be >= start_s ({self.start_s:g} s)")
         _num(self.stride, k + "stride", 1, 1_000_000)
         _num(self.roughness_rms_slope_deg, k + "roughness_rms_slope_deg", 0.0, 30.0, unit="deg")
-        _num(self.albedo, k + "albedo", 0.01, 1.0)
+        # the Moon's normal albedo is 0.07-0.16 (maria to highlands); the exposure is fixed (full
+        # well at I/F 0.2), so a much brighter surface saturates
+        _num(self.albedo, k + "albedo", 0.02, 0.3)
         _num(self.read_noise_e, k + "read_noise_e", 0.0, 1e4, unit="e-")
         _num(self.full_well_e, k + "full_well_e", 100.0, 1e7, unit="e-")
         _num(self.bits, k + "bits", 8, 16)
@@ -842,6 +844,14 @@ class RunConfig:
         if self.detection.source == "pixels":
             _check(self.render.enabled, "detection.source",
                    "= \"pixels\" needs rendered frames (render.start_s, render.end_s)")
+            t, r = self.trajectory, self.render
+            assert r.start_s is not None and r.end_s is not None
+            lo = max(r.start_s, t.start_s)
+            ends = [e for e in (r.end_s, t.end_s, t.ballistic_impact_s()) if e is not None]
+            first = math.ceil(lo * t.frame_rate_hz - 1e-9) / t.frame_rate_hz
+            _check(first <= min(ends) + 1e-9, "render.start_s",
+                   f"no trajectory frame lies in the rendered window [{r.start_s:g}, "
+                   f"{r.end_s:g}] s: detection.source = \"pixels\" would see nothing")
             _check(self.identification.mode != "simulated", "detection.source",
                    "= \"pixels\" needs identification by algorithm (identification.mode): "
                    "the coin flip cannot name the crater of a detection from pixels")

@@ -41,7 +41,7 @@ def default_with(section: str, key: str, value: str) -> str:
     for line in lines:
         stripped = line.strip()
         if stripped.startswith("["):
-            current = stripped.strip("[]")
+            current = stripped.split("#")[0].strip().strip("[]")
         if current == section and stripped.split("=")[0].strip() == key and not done:
             line, done = f"{key} = {value}", True
         out.append(line)
@@ -146,6 +146,8 @@ def test_wrong_type_names_the_key(workdir, section, key, value, full_key):
     ("estimation", "methods", '["paper", "magic"]', "estimation.methods"),
     ("scoring", "table_window", '"0-10 s"', "scoring.table_window"),
     ("trajectory", "end_s", "-5.0", "trajectory.end_s"),
+    ("render", "albedo", "0.5", "render.albedo"),
+    ("identification", "mode", '"psychic"', "identification.mode"),
 ], ids=lambda v: v if isinstance(v, str) and "." in v else None)
 def test_out_of_range_names_the_key(workdir, section, key, value, full_key):
     path = write_scenario("bad", default_with(section, key, value))
@@ -612,3 +614,16 @@ def test_default_toml_comments_every_key(workdir):
             if "#" not in stripped:
                 bare.append(stripped)
     assert bare == []
+
+
+def test_pixels_need_a_rendered_frame_of_the_trajectory(workdir):
+    """detection.source = "pixels" over a render window that holds no trajectory frame would
+    see nothing: a one-line error naming render.start_s."""
+    path = write_scenario("pix", 'extends = "images"\n[trajectory]\nstart_s = 1200.0\n'
+                          'end_s = 1220.0\n[render]\nstart_s = 1300.0\nend_s = 1310.0\n')
+    with pytest.raises(ConfigError, match=r"render\.start_s: no trajectory frame") as exc:
+        load_config("pix")
+    assert str(path) in str(exc.value) and "\n" not in str(exc.value)
+    write_scenario("pix2", 'extends = "images"\n[trajectory]\nstart_s = 1200.0\n'
+                   'end_s = 1220.0\n[render]\nstart_s = 1210.0\nend_s = 1210.0\n')
+    assert load_config("pix2").render.start_s == 1210.0

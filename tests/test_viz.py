@@ -428,3 +428,20 @@ def test_headless_screenshot_is_not_empty(workdir, tables):
     assert left.stdout.strip() == ""
 
 
+
+
+def test_images_scale_their_bits_to_the_jpeg(tmp_path):
+    """An image quantised to 12 bits is shown at its grey level, not at 1/16 of it."""
+    import io
+
+    from PIL import Image
+
+    from pipeline.viz import images
+
+    for bits in (8, 12, 16):
+        grey = np.full((32, 32), round(0.5 * (2**bits - 1)),
+                       dtype=np.uint8 if bits == 8 else np.uint16)
+        jpeg = images.encode_jpeg(grey, 16, bits)
+        assert jpeg[:2] == b"\xff\xd8"
+        level = np.asarray(Image.open(io.BytesIO(jpeg)), dtype=float)
+        assert level.shape == (16, 16) and abs(level.mean() - 127.5) < 2.0, (bits, level.mean())

@@ -192,14 +192,16 @@ def pixel_sensing(model: DetectionModel, pixel: pl.DataFrame, frame: np.ndarray,
                   sun_mcmf_m: np.ndarray) -> Sensing:
     """The crater detector's ellipses in the rendered images (`pipeline.ops.render`'s
     detections table `pixel`) of each frame (none where no image was rendered), with the truth
-    of their match to the true rims: the world crater (the catalogue with its errors), its
-    bearing, range, lighting and the detection model's probability; frames' truth as in
-    `model_sensing`."""
+    of their match to the true rims: the world crater (the catalogue with its errors) at its
+    rendered rim crest, its bearing, range, lighting and the detection model's probability;
+    frames' truth as in `model_sensing`."""
     phys = model.physical
     assert phys is not None
     cam = phys.camera
     world = sensor.world_craters(craters.r_mcmf_m, craters.diam_km * 1e3, craters.crater_id,
                                  phys.catalogue_errors, phys.world_seed)
+    # the truth of a detection is the rim crest the images show (the world's craters' terrain)
+    crest_m, _ = render.rim_crests(world.r_mcmf_m, world.diam_m)
     pixel = pixel.sort("frame", "det_index")
     at = np.searchsorted(pixel["frame"].to_numpy(), np.stack([frame, frame + 1]))
     order = np.argsort(craters.crater_id)
@@ -221,7 +223,7 @@ def pixel_sensing(model: DetectionModel, pixel: pl.DataFrame, frame: np.ndarray,
                                       col["ellipse_angle_rad"]))
         row = truth_rows[a:b]
         real = row >= 0
-        c_true = np.where(real[:, None], world.r_mcmf_m[np.maximum(row, 0)], np.nan)
+        c_true = np.where(real[:, None], crest_m[np.maximum(row, 0)], np.nan)
         p_body = (c_true - r_mcmf_m[i]) @ dcm_body_from_mcmf[i].T
         u_true = sensor.bearings_body(cam, meas, None)  # a false one's: its ellipse centre's
         rho_true = camera.ray_sphere_distance(r_mcmf_m[i], u_true @ dcm_body_from_mcmf[i],

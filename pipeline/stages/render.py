@@ -1,8 +1,9 @@
 """Stage `render`: the camera's pictures of chosen frames and the craters detected in them.
 
-Renders the world's craters (the catalogue with its errors) under the ephemeris Sun through the
-physical camera (`pipeline.core.render`), detects rim ellipses in the pixels
-(`pipeline.core.crater_detect`) and matches them to the true rims, for scoring only
+Renders the world's craters (the catalogue with its horizontal and diameter errors; the rendered
+terrain is the craters' profiles on the sphere, so the vertical error does not move it) under the
+ephemeris Sun through the physical camera (`pipeline.core.render`), detects rim ellipses in the
+pixels (`pipeline.core.crater_detect`) and matches them to the true rims, for scoring only
 (`pipeline.ops.render`). Writes pixel_detections.parquet (one row per detection), rendered_
 craters.parquet (one row per true rim in view), images.parquet (per image), detection_recall.
 parquet (recall by apparent size and incidence beside the detection model's prediction),
@@ -80,7 +81,8 @@ def run(ctx: StageContext) -> StageResult:
                 img = ops_render.render_and_detect(model, craters, world, r_mcmf[i],
                                                    dcm_body_from_mcmf[i], sun[i], rng, opts)
                 results.append((int(frame[i]), float(t_s[i]), img))
-                jpegs.append(images.encode_jpeg(img.image, cfg.render.recording_size_px))
+                jpegs.append(images.encode_jpeg(img.image, cfg.render.recording_size_px,
+                                                cfg.render.bits))
                 if i in sheet:
                     sheet_images.append((int(frame[i]), float(t_s[i]), img))
                 advance()
@@ -100,16 +102,21 @@ def run(ctx: StageContext) -> StageResult:
     tx.table("detection_recall", recall)
     tx.output("render.json").write_text(json.dumps(facts, indent=2) + "\n")
     images.contact_sheet(tx.output("contact_sheet.png"), sheet_images,
-                         f"Rendered frames with true and detected rims ({ctx.store.run_id})")
+                         f"Rendered frames with true and detected rims ({ctx.store.run_id})",
+                         cfg.render.bits)
     with recording.recording(ctx.store.run_id, tx.output("render.rrd")) as rec:
         recording.log_images(rec, per_image, jpegs, cfg.detection.image_size_px,
                              cfg.render.recording_size_px, detections, truth)
     folder = ctx.store.stage_dir("render")
     size_mb = tx.output("render.rrd").stat().st_size / 2**20
-    line = (f"{facts['recall_10px_inc30_80']:.1%} recall (>= 10 px, incidence 30-80 deg), "
-            f"{facts['precision']:.1%} precision, median centre error "
-            f"{facts['centre_error_px_median']:.2f} px" if results else "no frame rendered "
-            "(render.start_s, end_s)")
+    if not results:
+        line = "no frame rendered (render.start_s, end_s)"
+    elif not detections.height:
+        line = "no crater detected"
+    else:
+        line = (f"{facts['recall_10px_inc30_80']:.1%} recall (>= 10 px, incidence 30-80 deg), "
+                f"{facts['precision']:.1%} precision, median centre error "
+                f"{facts['centre_error_px_median']:.2f} px")
     return StageResult(info=facts, summary=(
         f"wrote {folder / 'pixel_detections.parquet'}, rendered_craters.parquet, images.parquet,"
         f" detection_recall.parquet ({len(results):,} images; {line})",

@@ -18,13 +18,12 @@ MISSED_COLOR = (255, 170, 0)  # a true rim of 10 px or more not detected
 TRUE_COLOR = (150, 150, 150)  # the true rims (thin)
 
 
-def encode_jpeg(image: np.ndarray, size_px: int) -> bytes:
-    """JPEG bytes of a greyscale image (H, W) (uint8, or uint16 scaled to 8 bits), resized so
-    that its larger side is size_px."""
+def encode_jpeg(image: np.ndarray, size_px: int, bits: int) -> bytes:
+    """JPEG bytes of a greyscale image (H, W) quantised to `bits` (scaled to 8 bits), resized
+    so that its larger side is size_px."""
     img = np.asarray(image)
-    if img.dtype != np.uint8:
-        img = (img.astype(np.float64) * 255.0 / max(float(np.iinfo(img.dtype).max), 1.0)
-               ).astype(np.uint8)
+    if bits != 8:
+        img = np.round(img.astype(np.float64) * (255.0 / (2**bits - 1))).astype(np.uint8)
     pil = Image.fromarray(img)
     scale = size_px / max(img.shape)
     if scale != 1.0:
@@ -44,15 +43,15 @@ def _ellipse_xy(u: np.ndarray, v: np.ndarray, a: np.ndarray, b: np.ndarray, angl
     return np.split(points, offsets[1:-1])
 
 
-def contact_sheet(path: Path, frames: list, title: str) -> None:
-    """A row of rendered frames (frame, t_s, `pipeline.ops.render.FrameImage`) with the true
-    rims (thin grey), the detections matched to one (green) or to none (magenta), and the true
-    rims of 10 px or more that were missed (orange)."""
+def contact_sheet(path: Path, frames: list, title: str, bits: int) -> None:
+    """A row of rendered frames (frame, t_s, `pipeline.ops.render.FrameImage`; quantised to
+    `bits`) with the true rims (thin grey), the detections matched to one (green) or to none
+    (magenta), and the true rims of 10 px or more that were missed (orange)."""
     n = max(len(frames), 1)
     fig = Figure(figsize=(4.2 * n, 4.6))
     axes = fig.subplots(1, n, squeeze=False)[0]
     for ax, (frame, t_s, img) in zip(axes, frames, strict=False):
-        ax.imshow(img.image, cmap="gray", vmin=0, vmax=np.iinfo(img.image.dtype).max)
+        ax.imshow(img.image, cmap="gray", vmin=0, vmax=2**bits - 1)
         t = img.truth
         for sel, color, lw in ((np.ones(t.row.size, bool), TRUE_COLOR, 0.4),
                                (t.counted & ~t.detected & (t.apparent_diam_px >= 10.0),

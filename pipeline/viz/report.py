@@ -386,9 +386,9 @@ def rendering_section(facts: dict, recall: pl.DataFrame, per_image: pl.DataFrame
         rows.append(f"| {d} | " + " | ".join(cells) + " |")
     model, fitted = facts.get("model_detectability"), facts.get("calibrated_detectability")
     calibration = ""
-    if model and fitted:
-        lines = [f"| {k} | {model[k]} | {_round(fitted[k])} |" for k in model
-                 if model[k] != fitted[k]]
+    lines = [f"| {k} | {_round(model[k])} | {_round(fitted[k])} |" for k in model
+             if model[k] != fitted[k]] if model and fitted else []
+    if lines:
         calibration = ("\nThe detection model's parameters fitted to the pixels (maximum "
                        "likelihood of the detected flags; those the data do not constrain "
                        "unchanged):\n\n| parameter | model | calibrated |\n|---|---|---|\n"
@@ -448,10 +448,12 @@ def identification_section(cfg: RunConfig, ident: pl.DataFrame,
                f"\n|---|---|---|---|\n{rows}\n")
     mode = (f"the paper's coin flip (p = {d.p_identify:g}, false matches "
             f"{d.false_match_share:.0%})" if i.mode == "simulated" else f"`{i.mode}`")
+    false = (f"{d.false_detection_share:.0%} of the real ones added at random"
+             if d.source == "model" else "the crater detector's own (in the rendered images)")
     return f"""
 ## Crater identification
 
-Identification: {mode}; false detections {d.false_detection_share:.0%} of the real ones.
+Identification: {mode}; false detections: {false}.
 `identified correctly` is the share of real detections matched to their own crater (the paper
 assumes 0.85); `wrong` counts detections matched to another crater (or a false detection
 matched to any); a wrong fix is a frame with a fix where wrong identifications outnumber right
