@@ -688,7 +688,8 @@ class IdentificationConfig:
         _num(self.star_tracker_sigma_arcsec, k + "star_tracker_sigma_arcsec", 0.0, 3600.0,
              unit="arcsec")
         _num(self.query_detections, k + "query_detections", 3, 100)
-        _num(self.min_matches, k + "min_matches", 3, 1000)
+        _num(self.min_matches, k + "min_matches", 4, 1000,
+             why="a verifying pose needs 4 craters (3 give it no redundancy)")
         _check(bool(self.index_dir.strip()), k + "index_dir", "must not be empty")
 
 
@@ -855,6 +856,10 @@ class RunConfig:
             _check(self.identification.mode != "simulated", "detection.source",
                    "= \"pixels\" needs identification by algorithm (identification.mode): "
                    "the coin flip cannot name the crater of a detection from pixels")
+        _check(not (self.identification.mode == "tracking" and n.init == "first_fix"),
+               "identification.mode", "= \"tracking\" needs a filter to predict from the start "
+               "(navigation.init = \"dispersed\"); with navigation.init = \"first_fix\" use "
+               "\"tracking_lis\" (lost in space gives the first fix)")
         _check(self.identification.mode == "simulated" or self.detection.sensor == "physical",
                "identification.mode", f"= {self.identification.mode!r} matches rim ellipses: it "
                "needs detection.sensor = \"physical\"")

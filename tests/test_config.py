@@ -627,3 +627,10 @@ def test_pixels_need_a_rendered_frame_of_the_trajectory(workdir):
     write_scenario("pix2", 'extends = "images"\n[trajectory]\nstart_s = 1200.0\n'
                    'end_s = 1220.0\n[render]\nstart_s = 1210.0\nend_s = 1210.0\n')
     assert load_config("pix2").render.start_s == 1210.0
+
+
+def test_tracking_alone_needs_a_filter_from_the_start(workdir):
+    """identification.mode = "tracking" cannot start from a first fix it never makes."""
+    write_scenario("trk", 'extends = "lost"\n[identification]\nmode = "tracking"\n')
+    with pytest.raises(ConfigError, match=r"identification\.mode.*tracking_lis"):
+        load_config("trk")

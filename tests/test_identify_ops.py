@@ -4,6 +4,7 @@ gives no fix, not a wrong one; the real Robbins >= 20 km catalogue fixes a frame
 
 from __future__ import annotations
 
+import io
 from dataclasses import replace
 from pathlib import Path
 
@@ -12,9 +13,11 @@ import pytest
 from conftest import DEFAULT_TOML, shared_file
 
 from pipeline.config import load_config
-from pipeline.core import tiling
+from pipeline.core import crater_index, tiling
+from pipeline.core.constants import MOON_RADIUS_M
 from pipeline.io import ephemeris
 from pipeline.io.catalogue_db import Catalogue, load_catalogue
+from pipeline.io.pair_index import PairIndexStore
 from pipeline.ops.detect import model_of, true_poses
 from pipeline.ops.identify import IndexCache, identify_frames, model_sensing
 from pipeline.ops.imu import simulate as simulate_sensors
@@ -110,3 +113,30 @@ def test_robbins_catalogue_fixes_a_high_altitude_frame(tmp_path: Path) -> None:
     d = r.detections
     assert r.ok and d.identified.sum() >= 8, (d.row.size, d.identified.sum())
     assert np.all(d.matched_row[d.identified] == d.row[d.identified])
+
+
+def test_index_files_are_trusted_only_when_whole_and_theirs(tmp_path: Path) -> None:
+    """A saved index loads back equal; a truncated, foreign or tampered file is rebuilt (None),
+    never trusted."""
+    rng = np.random.default_rng(0)
+    c = rng.normal(size=(40, 3)) * 2e4 + [MOON_RADIUS_M, 0.0, 0.0]
+    d = rng.uniform(2e3, 8e3, 40)
+    index = crater_index.build_pair_index(c, d, 5e4)
+    store = PairIndexStore(tmp_path, "catalogue-key")
+    params = {"centre_x": 1.0, "diam_min_m": 2e3, "diam_max_m": 8e3}
+    path = store.save(params, index)
+    back = store.load(params)
+    assert back is not None and np.array_equal(back.pair_ij, index.pair_ij)
+    assert PairIndexStore(tmp_path, "another").load(params) is None  # not its catalogue's
+    assert store.load({**params, "diam_min_m": 4e3}) is None  # not built
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])  # truncated
+    assert store.load(params) is None
+    path.write_bytes(b"")
+    assert store.load(params) is None
+    arrays = {k: v for k, v in np.load(io.BytesIO(data)).items()}
+    arrays["pair_ij"] = arrays["pair_ij"] + 1000  # rows beyond the index's craters
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    path.write_bytes(buf.getvalue())
+    assert store.load(params) is None

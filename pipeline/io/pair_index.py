@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -22,26 +23,41 @@ class PairIndexStore:
         self.directory = directory
         self.catalogue_key = catalogue_key
 
+    def _key(self, params: dict[str, float]) -> dict[str, float | str]:
+        return {"catalogue": self.catalogue_key, **params}
+
     def path(self, params: dict[str, float]) -> Path:
         """The file of the index built with `params` (region, size range, separation)."""
-        text = json.dumps({"catalogue": self.catalogue_key, **params}, sort_keys=True)
+        text = json.dumps(self._key(params), sort_keys=True)
         return self.directory / f"pairs-{hashlib.sha256(text.encode()).hexdigest()[:20]}.npz"
 
     def load(self, params: dict[str, float]) -> PairIndex | None:
-        """The index, or None when not built (or unreadable)."""
+        """The index, or None when not built, unreadable or not the one `params` describe (a
+        damaged or foreign file is rebuilt, not trusted)."""
         path = self.path(params)
         if not path.is_file():
             return None
         try:
             with np.load(path) as z:
-                return PairIndex.from_arrays({k: z[k] for k in z.files})
-        except (OSError, ValueError, KeyError):  # a damaged file is rebuilt, not trusted
+                arrays = {k: z[k] for k in z.files}
+            stored = json.loads(str(arrays.pop("params")))
+            index = PairIndex.from_arrays(arrays)
+        except (OSError, ValueError, KeyError, EOFError, IndexError, TypeError,
+                zipfile.BadZipFile):
             return None
+        n = index.diam_m.size
+        sane = (stored == self._key(params) and index.c_m.shape == (n, 3)
+                and index.pair_ij.ndim == 2 and index.pair_ij.shape[1] == 2
+                and (index.pair_ij.size == 0 or (index.pair_ij.min() >= 0
+                                                 and index.pair_ij.max() < n))
+                and bool(np.all(index.diam_m >= params["diam_min_m"]))
+                and bool(np.all(index.diam_m <= params["diam_max_m"])))
+        return index if sane else None
 
     def save(self, params: dict[str, float], index: PairIndex) -> Path:
         path = self.path(params)
         buf = io.BytesIO()
-        np.savez(buf, **index.to_arrays())
+        np.savez(buf, params=np.array(json.dumps(self._key(params))), **index.to_arrays())
         self.directory.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(path, buf.getvalue())
         return path

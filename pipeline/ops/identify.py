@@ -16,7 +16,10 @@ Frame after frame, in time order, like the flight software:
   filter.
 
 The truth (which world crater a detection came from, or none: a false detection) is kept apart
-and only written for scoring.
+and only written for scoring. The tracker's filter is identification's own (the navigation
+filter's code and assumptions, always tightly coupled, whatever `navigation.crater_updates`),
+and the verifying pose uses the bearings and the apparent-size ranges (a ranging sensor's
+`per_crater` ranges serve estimation and navigation only).
 """
 
 from __future__ import annotations
@@ -295,8 +298,10 @@ def identify_frames(model: DetectionModel, opts: IdentifyOptions, craters: Crate
 
         t0, built_s = time.perf_counter(), indexes.build_s
         sigma_px = _prior_sigma_px(tracker, cam.fx_px) if tracker is not None else np.inf
+        # too wide a prior, or (with lost in space to recover) tracking failing frame after
+        # frame; plain tracking keeps trying, having nothing else
         lost = (tracker is None or sigma_px > opts.track_max_sigma_px
-                or failures >= opts.lost_after_frames)
+                or (opts.mode == "tracking_lis" and failures >= opts.lost_after_frames))
         result: _Match | None = None
         mode = "none"
         if opts.mode == "lost_in_space" or (opts.mode == "tracking_lis" and lost):
@@ -329,6 +334,7 @@ def identify_frames(model: DetectionModel, opts: IdentifyOptions, craters: Crate
         identified = (result.identified if result is not None and (ok or mode == "tracking")
                       else np.zeros(n, bool))
         matched = np.where(identified, matched, -1)
+        confidence = np.where(identified, confidence, np.nan)  # of the matches kept only
         if mode == "tracking":
             failures = 0 if ok else failures + int(n >= TRACK_MIN_MATCHES)
         if result is not None and opts.mode != "lost_in_space":

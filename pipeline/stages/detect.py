@@ -15,6 +15,7 @@ from pipeline.core.estimators import RobustOptions
 from pipeline.core.navigation.eskf import BA, BG, N_STATES, VEL
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
+from pipeline.errors import StageInputError
 from pipeline.io import ephemeris
 from pipeline.io.catalogue_db import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.io.pair_index import PairIndexStore
@@ -73,8 +74,14 @@ def run(ctx: StageContext) -> StageResult:
                                                   sun)
     else:
         assert sun is not None  # the config asks for an epoch with the physical sensor
-        indexes = IndexCache(craters, PairIndexStore(workspace().resolve(ident.index_dir),
-                                                     craters.meta["key"]),
+        index_dir = workspace().resolve(ident.index_dir)
+        try:
+            index_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StageInputError(f"identification.index_dir = {ident.index_dir!r}: cannot "
+                                  f"keep the lost-in-space indexes there ({exc.strerror})"
+                                  ) from None
+        indexes = IndexCache(craters, PairIndexStore(index_dir, craters.meta["key"]),
                              cfg.detection.detect_min_diameter_px)
         with progress_bar(f"detecting and identifying craters ({ident.mode})",
                           trajectory.height) as advance:

@@ -124,6 +124,8 @@ def fig_errors(scores: pl.DataFrame, quantities: tuple[Quantity, ...], path: Pat
 def _fmt(x: float) -> str:
     if x is None or not np.isfinite(x):
         return "-"
+    if x == 0:
+        return "0"
     return f"{x:.3g}" if abs(x) >= 1e-3 else f"{x:.2e}"
 
 
@@ -435,7 +437,7 @@ def identification_section(cfg: RunConfig, ident: pl.DataFrame,
         body.append(
             f"| {r['window']} | {r['mode']} | {r['frames_with_detections']:,} | "
             f"{r['detections']:,} ({false:,}) | {_pct(r['share_correct'], 2)} | "
-            f"{r['wrong']:,}{share_wrong} | {_pct(r['share_frames_with_fix'])} | "
+            f"{r['wrong']:,}{share_wrong} | {_pct(r['share_frames_with_fix'], 1)} | "
             f"{r['wrong_fixes']} | {_fmt(r['time_to_first_fix_s'])} | "
             f"{_fmt(r['median_ms'])} / {_fmt(r['p95_ms'])} |")
     lis = ""
