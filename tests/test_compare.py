@@ -16,6 +16,7 @@ PHYSICAL = {"sensor": "physical", "range_source": "apparent_size", "bearing": "c
 RUN = ("ingest", "trajectory", "imu", "detect", "estimate", "navigate", "score")
 
 
+@pytest.mark.slow
 def test_compare_writes_the_report_of_a_paper_and_a_physical_run(workdir, catalogue_db,
                                                                  monkeypatch, capsys):
     run_stages(small_config("paper", catalogue_db, WINDOW), workdir / "runs", RUN)

@@ -311,6 +311,7 @@ def test_a_second_sweep_is_skipped(sweep, monkeypatch, capsys):
     assert "sweep: up to date" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_a_changed_sweep_reruns_without_recomputing_upstream(sweep, tmp_path, monkeypatch):
     """A copy of the sweep folder, swept again with seed 2 and cap 20 only: the sweep stage reruns,
     ingest and trajectory (in the sweep's own manifest) do not."""

@@ -98,6 +98,7 @@ def test_imu_increments_are_the_trajectory_s_motion(tmp_path: Path, catalogue_db
     assert np.max(np.abs(err)) < 1e-9
 
 
+@pytest.mark.slow
 def test_navigation_config_reruns_only_navigation_and_scoring(tmp_path: Path,
                                                               catalogue_db: Path) -> None:
     cfg = small_config("keys", catalogue_db, WINDOW)
