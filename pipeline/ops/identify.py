@@ -88,9 +88,8 @@ MIN_SIZE_SHARE = 0.8
 # Lost in space searches altitudes within the prior radius of the rough one, at most this share
 # of it (a rough position's error is mostly horizontal: along-track timing).
 ALTITUDE_TOLERANCE_SHARE = 0.3
-# The verifying pose is fitted to at most this many matches (the cost is linear in them; 40
-# craters fix the pose to ~1/6 of one crater's noise, so gating the rest against it is exact
-# to ~2 %).
+# The verifying pose is fitted to at most this many matches (a bound on its cost; 40 craters
+# fix the pose to ~1/6 of one crater's noise, so gating the rest against it is exact to ~2 %).
 VERIFY_MAX_CRATERS = 40
 # Lost in space queries detections whose estimated diameter reaches this share of the index's
 # smallest crater (the estimate scales with the rough altitude's error and the ellipse noise).
@@ -513,7 +512,7 @@ def _lost_in_space(meas: sensor.EllipseMeasurement, r_rough_mci_m: np.ndarray, r
                               opts.query_detections)
     q = rotations.q_from_dcm(dcm_mci_from_body)
     fixes: list[tuple[int, _Match]] = []  # verified, distinct
-    for r_cam_mcmf, _support in hyps:
+    for r_cam_mcmf in hyps:
         r_mci = dcm_mci_from_mcmf @ r_cam_mcmf
         altitude = float(np.linalg.norm(r_mci)) - MOON_RADIUS_M
         sigma = max(HYPOTHESIS_SIGMA_SHARE * altitude, 100.0)
@@ -763,9 +762,10 @@ class IndexCache:
 
     def hypotheses(self, meas: sensor.EllipseMeasurement, cam: camera.PixelCamera,
                    dcm_mcmf_from_cam: np.ndarray, r_rough_mcmf_m: np.ndarray, radius_m: float,
-                   n_query: int) -> list[tuple[np.ndarray, int]]:
-        """Camera positions (MCMF, m) hypothesised from the frame's detections around the rough
-        position (horizontal radius radius_m, the same altitude tolerance), with their support."""
+                   n_query: int) -> list[np.ndarray]:
+        """Camera positions (3,) (MCMF, m) hypothesised from the frame's detections around the
+        rough position (horizontal radius radius_m; altitudes within ALTITUDE_TOLERANCE_SHARE of
+        it at most), the best supported first."""
         altitude = float(np.linalg.norm(r_rough_mcmf_m)) - MOON_RADIUS_M
         altitude_tolerance = min(radius_m, ALTITUDE_TOLERANCE_SHARE * altitude)
         need = crater_index.expected_region(r_rough_mcmf_m, radius_m, cam.fx_px, cam.width_px,
@@ -784,7 +784,7 @@ class IndexCache:
         result = crater_index.query_pair_index(index, u[big], per_range[big], r_rough_mcmf_m,
                                                radius_m, altitude_tolerance,
                                                n_detections=n_query)
-        return [(h.r_cam_mcmf_m, h.support) for h in result.hypotheses]
+        return [h.r_cam_mcmf_m for h in result.hypotheses]
 
 
 def index_size_floor(index: crater_index.PairIndex) -> float:
