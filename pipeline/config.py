@@ -860,6 +860,9 @@ class RunConfig:
                "identification.mode", "= \"tracking\" needs a filter to predict from the start "
                "(navigation.init = \"dispersed\"); with navigation.init = \"first_fix\" use "
                "\"tracking_lis\" (lost in space gives the first fix)")
+        _check(self.identification.mode != "simulated" or self.detection.false_detection_share == 0,
+               "detection.false_detection_share", "needs identification by algorithm "
+               "(identification.mode): the coin flip has no crater to name a false detection")
         _check(self.identification.mode == "simulated" or self.detection.sensor == "physical",
                "identification.mode", f"= {self.identification.mode!r} matches rim ellipses: it "
                "needs detection.sensor = \"physical\"")

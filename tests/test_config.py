@@ -634,3 +634,9 @@ def test_tracking_alone_needs_a_filter_from_the_start(workdir):
     write_scenario("trk", 'extends = "lost"\n[identification]\nmode = "tracking"\n')
     with pytest.raises(ConfigError, match=r"identification\.mode.*tracking_lis"):
         load_config("trk")
+
+
+def test_false_detections_need_identification_by_algorithm(workdir):
+    write_scenario("fd", 'extends = "camera"\n[detection]\nfalse_detection_share = 0.2\n')
+    with pytest.raises(ConfigError, match=r"detection\.false_detection_share"):
+        load_config("fd")
