@@ -58,6 +58,10 @@ sweep *args:
 compare *args:
     {{py}} compare "$@"
 
+# a Monte Carlo campaign on Ray (e.g. just campaign dispersed --workers 2; --address for a cluster)
+campaign *args:
+    {{py}} campaign "$@"
+
 # read-only SQL over the catalogue (add --run RUN for a run's tables)
 sql *args:
     {{py}} sql "$@"

@@ -152,6 +152,34 @@ def sweep(
 
 
 @app.command()
+def campaign(
+    spec: Annotated[str, typer.Argument(help="Campaign spec: a name in runs/campaigns/ or a "
+                                             ".toml path.")],
+    address: Annotated[str | None, typer.Option(
+        help="Ray cluster to run on (default: RAY_ADDRESS, else a local Ray instance).")] = None,
+    workers: Annotated[int | None, typer.Option(
+        help="Runs at once (default: every CPU of the Ray instance).")] = None,
+    local: Annotated[bool, typer.Option(
+        "--local", help="No Ray: the runs one after the other in this process.")] = False,
+    retry_failed: Annotated[bool, typer.Option(
+        "--retry-failed", help="Also rerun the runs recorded as failed.")] = False,
+) -> None:
+    """A Monte Carlo campaign: many runs of a scenario with dispersed settings, as Ray tasks;
+    resumes where it stopped (runs/<campaign>/campaign.parquet, report.md)."""
+    from pipeline.campaign.execute import run_campaign
+    from pipeline.campaign.spec import load_spec
+
+    if workers is not None and workers < 1:
+        raise PipelineError(f"--workers {workers}: must be at least 1")
+    s = load_spec(spec)
+    facts = run_campaign(s, address=address, workers=workers, local=local,
+                         retry_failed=retry_failed)
+    typer.echo(f"campaign {s.name}: {facts['done']}/{s.runs} runs recorded, {facts['ok']} ok; "
+               f"ran {facts['ran']} in {facts['wall_s']:.1f} s on {facts['workers']} worker(s)"
+               f"\ntable: {facts['table']}\nreport: {facts['report']}")
+
+
+@app.command()
 def sql(
     query: Annotated[str | None, typer.Argument(
         help="SQL to run (read-only); `-` reads it from standard input (e.g. a file that starts "

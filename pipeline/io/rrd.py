@@ -4,10 +4,16 @@ once). rerun-sdk's own file sink writes from a background thread and, on ENOSPC,
 forever in 3 of 5 trials (and in 2 of 2 here under RLIMIT_FSIZE); the in-memory stream costs
 about the recording's size in RAM (< 25 MiB for the largest recording of the default run). The
 layout goes in as the default blueprint (a Blueprint store in the same file), as `save` does.
+
+`CRATER_NAV_RECORDINGS=off` in the environment switches recordings off (what a campaign's runs
+do by default): every stream is a disabled one (its log calls are no-ops) and each `.rrd` is
+written empty, so a stage still commits the outputs it declares. Such a run folder is scratch: a
+campaign gives the command that reruns one of its runs with its recordings.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -22,7 +28,13 @@ from pipeline.io.store import atomic_write_bytes
 def recording_file(application_id: str, recording_id: str, path: Path,
                    blueprint: Any | None = None) -> Iterator[rr.RecordingStream]:
     """A recording stream whose bytes are written to `path` (atomically) when the block ends
-    without error; OSError (ENOSPC, EFBIG) propagates from the write."""
+    without error; OSError (ENOSPC, EFBIG) propagates from the write. With recordings off
+    (`recordings_enabled()`), a disabled stream and an empty file."""
+    if not recordings_enabled():
+        off = rr.RecordingStream(application_id, recording_id=recording_id, default_enabled=False)
+        yield off
+        atomic_write_bytes(Path(path), b"")
+        return
     rec = rr.RecordingStream(application_id, recording_id=recording_id)
     rec.set_log_time_enabled(False)
     stream = rec.binary_stream()
@@ -39,3 +51,11 @@ def recording_file(application_id: str, recording_id: str, path: Path,
         data += stream.read() or b""
         if ok:
             atomic_write_bytes(Path(path), data)
+
+
+RECORDINGS_ENV = "CRATER_NAV_RECORDINGS"
+
+
+def recordings_enabled() -> bool:
+    """Recordings are written unless the environment says `CRATER_NAV_RECORDINGS=off`."""
+    return os.environ.get(RECORDINGS_ENV, "on").strip().lower() not in ("off", "0", "false", "no")
