@@ -166,8 +166,20 @@ def run_one(task: RunTask, shared: dict[str, Any]) -> dict[str, Any]:
         else:
             os.environ[RECORDINGS_ENV] = previous
     return {"index": task.index, "run_id": task.run_id, "status": status, "error": error,
-            "wall_s": time.perf_counter() - t0, "node": os.uname().nodename,
+            "wall_s": time.perf_counter() - t0, "node": _node(),
             "windows": windows_rows, "frames": frames}
+
+
+def _node() -> str:
+    """The Ray node id in a Ray worker, else the host name."""
+    try:
+        import ray
+
+        if ray.is_initialized():
+            return str(ray.get_runtime_context().get_node_id())
+    except ImportError:
+        pass
+    return os.uname().nodename
 
 
 # --- the driver ----------------------------------------------------------------------------------

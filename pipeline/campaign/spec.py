@@ -342,6 +342,12 @@ def _load(path: Path) -> CampaignSpec:
     for d in dispersions:
         if built_in.get(d.key):
             raise ConfigError(f"dispersions.{d.key!r}: also set by a built-in dispersion")
+    if mounting > 0:
+        sensor = overrides.get("detection", {}).get("sensor") or _base_sensor(base)
+        if sensor != "physical":
+            raise ConfigError(f"mounting_sigma_deg = {mounting:g}: the camera mounting needs "
+                              f"detection.sensor = \"physical\" (the base and overrides give "
+                              f"{sensor!r}: the paper's camera is the body frame)")
     grid_size = math.prod(len(d.values) for d in dispersions if d.kind == "grid")
     if grid_size > runs:
         raise ConfigError(f"dispersions: the sweep grid has {grid_size} combinations, more than "
@@ -351,6 +357,12 @@ def _load(path: Path) -> CampaignSpec:
                         catalogue_errors=flags["catalogue_errors"], jitter=flags["jitter"],
                         mounting_sigma_deg=mounting, overrides=overrides,
                         dispersions=dispersions)
+
+
+def _base_sensor(base: str) -> str:
+    from pipeline.config import load_config
+
+    return load_config(base).detection.sensor
 
 
 def _leaf_keys(d: dict[str, Any], prefix: str = "") -> list[str]:
