@@ -1,4 +1,4 @@
-# Crater-based absolute navigation: one recipe per stage, plus run, sweep, test, bench, sql, view.
+# Crater-based absolute navigation: one recipe per stage, plus run, sweep, campaign, test, bench, sql, view.
 # Recipes use the project's virtual environment (.venv) when it exists.
 
 set positional-arguments
@@ -50,7 +50,7 @@ score *args:
 stages:
     {{py}} stages
 
-# the crater-cap sweep: the paper's Table 1 (caps x methods x seeds)
+# the crater-cap sweep: the paper's Table 1, a campaign over caps x seeds (both methods per run)
 sweep *args:
     {{py}} sweep "$@"
 
@@ -62,11 +62,11 @@ compare *args:
 campaign *args:
     {{py}} campaign "$@"
 
-# read-only SQL over the catalogue (add --run RUN for a run's tables)
+# read-only SQL over the catalogue (add --run RUN for a run's tables, --campaign NAME a campaign's)
 sql *args:
     {{py}} sql "$@"
 
-# open a run's recordings in the Rerun viewer
+# open a run's (or a campaign's) recordings in the Rerun viewer
 view run="default" *args:
     {{py}} view "$@"
 
@@ -88,7 +88,7 @@ bench *args:
 lint:
     ruff check pipeline tests
 
-# lint, types (core, ops, engine) and the import contract: what CI and pre-commit run
+# lint, types (core, ops, engine, campaign) and the import contract: what CI and pre-commit run
 check:
     ruff check pipeline tests
     mypy

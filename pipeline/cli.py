@@ -24,12 +24,11 @@ RunId = Annotated[str | None, typer.Option("--run-id", help="Run folder under ru
 Force = Annotated[bool, typer.Option("--force", help="Rerun even when up to date.")]
 
 
-def _executor(workers: int = 1) -> Any:
+def _executor() -> Any:
     from pipeline.engine.executor import Executor
-    from pipeline.engine.runners import runner_for
     from pipeline.stages import DAG
 
-    return Executor(DAG, runner_for(workers))
+    return Executor(DAG)
 
 
 def _stage(name: str, scenario: str, run_id: str | None, force: bool,
@@ -133,34 +132,52 @@ def run(
     typer.echo(headline(cfg, store))
 
 
+Address = Annotated[str | None, typer.Option(
+    help="Ray cluster to run on (default: RAY_ADDRESS, else a local Ray instance).")]
+Local = Annotated[bool, typer.Option(
+    "--local", help="No Ray: the runs one after the other in this process.")]
+
+
+def _check_workers(workers: int | None) -> None:
+    if workers is not None and workers < 1:
+        raise PipelineError(f"--workers {workers}: must be at least 1")
+
+
 @app.command()
 def sweep(
     scenario: Scenario = "default",
     run_id: Annotated[str | None, typer.Option(
         "--run-id", help="Sweep folder under runs/ (default: sweep-<scenario>).")] = None,
-    workers: Annotated[int | None, typer.Option(help="Worker processes (default: config).")] = None,
+    workers: Annotated[int | None, typer.Option(
+        help="Runs at once (default: sweep.workers).")] = None,
+    address: Address = None,
+    local: Local = False,
 ) -> None:
-    """The crater-cap sweep (the paper's Table 1): caps x methods x seeds."""
-    from pipeline.stages import SWEEP_TARGET
+    """The crater-cap sweep (the paper's Table 1): a campaign over caps x seeds, each run
+    estimating with the sweep's methods; resumes where it stopped."""
+    from pipeline.campaign.execute import run_campaign
+    from pipeline.campaign.sweep import sweep_spec, write_sweep
 
+    _check_workers(workers)
     cfg = load_config(scenario, run_id or f"sweep-{Path(scenario).stem}")
-    ex = _executor(workers or cfg.sweep.workers)
-    store = RunStore(cfg.run_id)
-    ex.execute(ex.plan(cfg, ex.dag.upstream_closure([SWEEP_TARGET])), store)
-    typer.echo(f"sweep {cfg.run_id}: Table 1 in {store.path('table1.md')}, report "
-               f"{store.path('sweep_report.md')}\nlook at it: just view {cfg.run_id}")
+    spec = sweep_spec(scenario, cfg)
+    facts = run_campaign(spec, address=address, workers=workers or cfg.sweep.workers,
+                         local=local)
+    written = write_sweep(spec, cfg, facts["tables"])
+    typer.echo(f"sweep {spec.name}: {spec.runs} runs ({facts['ran']} ran in "
+               f"{facts['runs_s']:.1f} s on {facts['workers']} worker(s))\nwrote "
+               + ", ".join(str(p) for p in written)
+               + f"\nTable 1: {written[1]}\nlook at it: just view {spec.name}")
 
 
 @app.command()
 def campaign(
     spec: Annotated[str, typer.Argument(help="Campaign spec: a name in runs/campaigns/ or a "
                                              ".toml path.")],
-    address: Annotated[str | None, typer.Option(
-        help="Ray cluster to run on (default: RAY_ADDRESS, else a local Ray instance).")] = None,
+    address: Address = None,
     workers: Annotated[int | None, typer.Option(
         help="Runs at once (default: every CPU of the Ray instance).")] = None,
-    local: Annotated[bool, typer.Option(
-        "--local", help="No Ray: the runs one after the other in this process.")] = False,
+    local: Local = False,
     retry_failed: Annotated[bool, typer.Option(
         "--retry-failed", help="Also rerun the runs recorded as failed.")] = False,
 ) -> None:
@@ -169,14 +186,18 @@ def campaign(
     from pipeline.campaign.execute import run_campaign
     from pipeline.campaign.spec import load_spec
 
-    if workers is not None and workers < 1:
-        raise PipelineError(f"--workers {workers}: must be at least 1")
+    _check_workers(workers)
     s = load_spec(spec)
     facts = run_campaign(s, address=address, workers=workers, local=local,
                          retry_failed=retry_failed)
+    root = Path(facts["table"]).parent
+    written = [root / n for n in ("campaign.parquet", "campaign.duckdb", "campaign.json",
+                                  "campaign.rrd") if (root / n).is_file()]
     typer.echo(f"campaign {s.name}: {facts['done']}/{s.runs} runs recorded, {facts['ok']} ok; "
-               f"ran {facts['ran']} in {facts['wall_s']:.1f} s on {facts['workers']} worker(s)"
-               f"\ntable: {facts['table']}\nreport: {facts['report']}")
+               f"ran {facts['ran']} in {facts['runs_s']:.1f} s on {facts['workers']} worker(s)"
+               f"\nwrote {', '.join(map(str, written))}\nreport: {facts['report']}"
+               f"\nSQL: just sql --campaign {s.name} \"SELECT * FROM campaign.envelopes LIMIT 5\""
+               f"\nlook at it: just view {s.name}")
 
 
 @app.command()
@@ -188,6 +209,9 @@ def sql(
         help="Add runs/<RUN>'s tables (by name) and use the catalogue that run used.")] = None,
     db: Annotated[str | None, typer.Option(
         help="Catalogue database (default: the run's, else catalogue/craters.duckdb).")] = None,
+    campaign: Annotated[str | None, typer.Option(
+        help="Attach runs/<CAMPAIGN>/campaign.duckdb as `campaign` (tables campaign.campaign, "
+             "campaign.navigation, campaign.scores, campaign.envelopes).")] = None,
     format: Annotated[str, typer.Option("--format", help="table, csv or markdown.")] = "table",
     max_rows: Annotated[int, typer.Option(
         help="Rows of a table printed on a terminal (piped output is never cut).")] = 40,
@@ -200,7 +224,8 @@ def sql(
     if query == "-":
         query = sys.stdin.read()
     try:
-        run_query(query, run=run, db=db, fmt=format, max_rows=max_rows, timeout_s=timeout_s)
+        run_query(query, run=run, db=db, fmt=format, max_rows=max_rows, timeout_s=timeout_s,
+                  campaign=campaign)
     except PipelineError as exc:  # one line, also when `app` runs without `main` (CliRunner)
         typer.secho(f"error: {exc}", fg="red", err=True)
         raise typer.Exit(1) from None

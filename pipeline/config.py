@@ -3,7 +3,7 @@
 A scenario is `<workspace>/runs/scenarios/<name>.toml` (see `pipeline.io.workspace`), or any
 `.toml` path (taken as given, relative to the working directory). `default.toml` lists every key
 (the paper's case); another scenario starts with `extends = "<name>"` (a plain scenario name of the
-workspace) and lists only what it changes.
+workspace, or a `.toml` path relative to the extending file) and lists only what it changes.
 
 Everything is checked at the door, with one line that names the file and the key: unknown keys,
 wrong types, non-finite numbers (TOML allows `nan` and `inf`), values out of their range, and
@@ -73,7 +73,8 @@ SIGMA_RANGE_M_RANGE = (1e-6, 1e6)  # m
 MAX_CONDITION_LIMIT = 1e15
 
 _PLAIN_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
-_RESERVED_RUN_IDS = ("scenarios",)  # runs/scenarios/ holds the scenario files
+_RESERVED_RUN_IDS = ("scenarios", "campaigns", "bench")  # runs/<these>/: scenarios, campaign
+# specs, the benchmarks' figures
 
 
 def _check(cond: bool, key: str, message: str) -> None:
@@ -457,6 +458,9 @@ class EstimationConfig:
     # physical sensor: the ellipse noise the navigator assumes; None ("truth"): the detection's
     assumed_pixel_sigma_px: float | None = field(metadata=_TRUTH)
     catalogue_sigmas: str  # ignore | truth: inflate each crater's noise by the catalogue errors
+    # physical sensor: the camera mounting the navigator assumes (body-from-camera, 3-2-1 Euler
+    # z, y, x, deg); None ("truth"): detection.camera_mounting_deg (a perfect calibration)
+    assumed_camera_mounting_deg: tuple[float, ...] | None = field(metadata=_TRUTH)
 
     def __post_init__(self) -> None:
         k = "estimation."
@@ -485,6 +489,11 @@ class EstimationConfig:
                  unit="px", why='or "truth"')
         _check(self.catalogue_sigmas in CATALOGUE_SIGMAS, k + "catalogue_sigmas",
                f"= {self.catalogue_sigmas!r}: must be one of {CATALOGUE_SIGMAS}")
+        if self.assumed_camera_mounting_deg is not None:
+            _check(len(self.assumed_camera_mounting_deg) == 3, k + "assumed_camera_mounting_deg",
+                   'needs 3 angles (z, y, x, deg) or "truth"')
+            for i, c in enumerate(self.assumed_camera_mounting_deg):
+                _num(c, f"{k}assumed_camera_mounting_deg[{i}]", -180.0, 180.0, unit="deg")
 
 
 _GRADE = {"literal": "grade"}  # field metadata: the TOML string "grade" stands for None
@@ -863,6 +872,14 @@ class RunConfig:
         _check(self.identification.mode != "simulated" or self.detection.false_detection_share == 0,
                "detection.false_detection_share", "needs identification by algorithm "
                "(identification.mode): the coin flip has no crater to name a false detection")
+        if self.estimation.assumed_camera_mounting_deg is not None:
+            _check(self.detection.sensor == "physical", "estimation.assumed_camera_mounting_deg",
+                   "a mounting other than the truth needs detection.sensor = \"physical\" (the "
+                   "paper's camera is the body frame)")
+            _check(self.identification.mode == "simulated",
+                   "estimation.assumed_camera_mounting_deg", "a mounting other than the truth "
+                   "needs identification.mode = \"simulated\" (identification by algorithm "
+                   "uses the true mounting)")
         _check(self.identification.mode == "simulated" or self.detection.sensor == "physical",
                "identification.mode", f"= {self.identification.mode!r} matches rim ellipses: it "
                "needs detection.sensor = \"physical\"")
@@ -922,6 +939,17 @@ class RunConfig:
                      if e.catalogue_sigmas == "truth" else none)
         return sensor.SensorNoise(sigma_px, d.pixel_camera().fx_px, d.range_source,
                                   self.navigator_sigmas()[1], catalogue)
+
+    def navigator_misalignment(self) -> np.ndarray | None:
+        """The rotation (3, 3) from the true body frame to the body frame the navigator computes
+        bearings in, R_body_from_cam(assumed) R_cam_from_body(true); None when it assumes the
+        true mounting."""
+        assumed = self.estimation.assumed_camera_mounting_deg
+        if assumed is None:
+            return None
+        d = self.detection
+        nav = dataclasses.replace(d, camera_mounting_deg=assumed).pixel_camera()
+        return nav.dcm_body_from_cam @ d.pixel_camera().dcm_cam_from_body
 
     def navigator_sigmas(self) -> tuple[float, float]:
         """(sigma_bearing ~rad, sigma_range_m m) the estimators assume: estimation.assumed_sigma_*,
@@ -1052,14 +1080,16 @@ def _read_scenario(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     parent = data.pop("extends", None)
     try:
         _check_keys(RunConfig, data, "")
-        if parent is not None:
-            _plain_name(parent, "extends", "a scenario name of the workspace")
+        if parent is not None and not (isinstance(parent, str) and parent.endswith(".toml")):
+            _plain_name(parent, "extends", "a scenario name of the workspace or a .toml path")
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
     if parent is None:
         return data
-    # The parent is always a scenario of the workspace, wherever the child is.
-    parent_path = workspace().scenarios_dir / f"{parent}.toml"
+    # A name is a scenario of the workspace, wherever the child is; a .toml path is relative to
+    # the child's folder (how a campaign's run files extend a scenario given as a path).
+    parent_path = (path.parent / parent if parent.endswith(".toml")
+                   else workspace().scenarios_dir / f"{parent}.toml")
     return _merge(_read_scenario(parent_path, (*seen, path.resolve())), data)
 
 

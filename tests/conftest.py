@@ -14,7 +14,6 @@ import rerun as rr
 
 from pipeline.config import RunConfig, load_config
 from pipeline.engine.executor import Executor
-from pipeline.engine.runners import Runner
 from pipeline.io.store import RunStore
 from pipeline.io.workspace import workspace
 from pipeline.stages import DAG, ingest
@@ -65,10 +64,10 @@ def small_config(run_id: str, db: Path, window: dict, **sections) -> RunConfig:
 
 
 def run_stages(cfg: RunConfig, root: Path, stages: Iterable[str] | None = None,
-               force: Iterable[str] = (), runner: Runner | None = None) -> list[str]:
+               force: Iterable[str] = ()) -> list[str]:
     """Bring `stages` (default: those of `just run`) of `cfg` up to date in `root`/<run_id>;
     returns the stages that ran."""
-    ex = Executor(DAG, runner)
+    ex = Executor(DAG)
     names = ex.dag.upstream_closure(["score"], cfg) if stages is None else list(stages)
     return ex.execute(ex.plan(cfg, names, force=force), RunStore(cfg.run_id, root))
 

@@ -640,3 +640,30 @@ def test_false_detections_need_identification_by_algorithm(workdir):
     write_scenario("fd", 'extends = "camera"\n[detection]\nfalse_detection_share = 0.2\n')
     with pytest.raises(ConfigError, match=r"detection\.false_detection_share"):
         load_config("fd")
+
+
+def test_a_navigator_that_assumes_another_camera_mounting(workdir):
+    """The misalignment rotates true body bearings into the navigator's body frame: the
+    rotation between the true and the assumed mounting; none for a perfect calibration, and
+    refused where it cannot apply (the paper's camera, identification by algorithm)."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    write_scenario("mis", 'extends = "camera"\n[detection]\ncamera_mounting_deg = [0.1, 0.0, '
+                   '0.05]\n[estimation]\nassumed_camera_mounting_deg = [0.0, 0.0, 0.0]\n')
+    m = load_config("mis").navigator_misalignment()
+    body_from_cam = Rotation.from_euler("ZYX", np.radians([0.1, 0.0, 0.05])).as_matrix()
+    np.testing.assert_allclose(m, body_from_cam.T, atol=1e-15)  # assumed: the identity
+    assert load_config("camera").navigator_misalignment() is None
+    write_scenario("mis_paper", 'extends = "default"\n[estimation]\n'
+                   'assumed_camera_mounting_deg = [0.0, 0.0, 0.0]\n')
+    with pytest.raises(ConfigError, match=r'assumed_camera_mounting_deg.*sensor = "physical"'):
+        load_config("mis_paper")
+    write_scenario("mis_id", 'extends = "identify"\n[estimation]\n'
+                   'assumed_camera_mounting_deg = [0.0, 0.0, 0.0]\n')
+    with pytest.raises(ConfigError, match=r'assumed_camera_mounting_deg.*mode = "simulated"'):
+        load_config("mis_id")
+    write_scenario("mis_bad", 'extends = "camera"\n[estimation]\n'
+                   'assumed_camera_mounting_deg = [0.0, 0.0]\n')
+    with pytest.raises(ConfigError, match=r"assumed_camera_mounting_deg"):
+        load_config("mis_bad")

@@ -36,7 +36,7 @@ from pipeline.io.store import (
     sha256_file,
     sweep_dead_temporaries,
 )
-from pipeline.stages import DAG, RUN_TARGET, SWEEP_TARGET
+from pipeline.stages import DAG, RUN_TARGET
 
 # Two fake stages: `a` writes a.txt (longer for a larger seed) and a table; `b` reads a.txt and
 # writes it upper-cased. Written to a file so that a child process can run them too.
@@ -145,7 +145,6 @@ def test_the_dag_follows_from_the_declarations():
     assert set(DAG.upstream["navigate"]) == {"trajectory", "imu", "detect", "estimate"}
     assert set(DAG.upstream["score"]) == {"ingest", "trajectory", "detect", "estimate",
                                           "navigate"}
-    assert set(DAG.upstream["sweep"]) == {"ingest", "trajectory"}
     for name, ups in DAG.upstream.items():  # each upstream stage writes an input of the stage
         for u in ups:
             assert set(DAG[u].outputs) & set(DAG[name].inputs), (name, u)
@@ -158,7 +157,6 @@ def test_the_dag_follows_from_the_declarations():
     assert DAG.upstream_closure([RUN_TARGET]) == ["ingest", "trajectory", "imu", "render",
                                                   "detect", "estimate", "navigate", "score"]
     assert DAG.upstream_closure([RUN_TARGET], load_config("images"))[3] == "render"
-    assert DAG.upstream_closure([SWEEP_TARGET]) == ["ingest", "trajectory", "sweep"]
     assert DAG.downstream_of("detect") == ["detect", "estimate", "navigate", "score"]
     assert DAG.downstream_of("render", default) == ["render"]
     assert DAG.downstream_of("imu") == ["imu", "detect", "estimate", "navigate", "score"]
@@ -243,15 +241,15 @@ def test_a_comment_in_the_report_module_rekeys_only_the_stages_that_import_it(mo
     code0, code1, key0, key1 = hashes_with_edit(monkeypatch, "pipeline.viz.report")
     importers = {n for n, s in DAG.stages.items()
                  if "pipeline.viz.report" in fingerprint.closure(s.code)}
-    assert importers == {"score", "sweep"}
+    assert importers == {"score"}
     assert changed(code0, code1) == importers
-    assert changed(key0, key1) == importers  # nothing is downstream of score or sweep
+    assert changed(key0, key1) == importers  # nothing is downstream of score
 
 
 def test_an_operation_edit_rekeys_its_stages_and_their_downstream(monkeypatch):
     code0, code1, key0, key1 = hashes_with_edit(monkeypatch, "pipeline.ops.detect")
-    assert changed(code0, code1) == {"render", "detect", "sweep"}
-    assert changed(key0, key1) == {"render", "detect", "estimate", "navigate", "score", "sweep"}
+    assert changed(code0, code1) == {"render", "detect"}
+    assert changed(key0, key1) == {"render", "detect", "estimate", "navigate", "score"}
 
 
 @pytest.mark.parametrize("module", ["pipeline.io.store", "pipeline.engine.executor",
@@ -575,22 +573,3 @@ def test_every_command_sweeps_dead_temporaries_of_the_catalogue_folder(fake, wor
     leftover.write_bytes(b"half a database")
     assert fake.execute(root, DEFAULT_TOML, 1) == []
     assert not leftover.exists()
-
-
-def _raise_in_init() -> None:
-    raise PipelineError("the catalogue was replaced")
-
-
-def _identity(x: int) -> int:
-    return x
-
-
-@pytest.mark.slow
-def test_a_failing_worker_initializer_is_reported_not_a_broken_pool():
-    """A worker whose initializer fails (the catalogue was replaced, memory) reports that error
-    through its first task, instead of breaking the pool with a lost message."""
-    from pipeline.engine.runners import ProcessPoolRunner
-
-    with pytest.raises(PipelineError, match="the catalogue was replaced"):
-        list(ProcessPoolRunner(2).map(_identity, [(1,), (2,)], initializer=_raise_in_init))
-    assert list(ProcessPoolRunner(2).map(_identity, [(1,), (2,), (3,)])) == [1, 2, 3]

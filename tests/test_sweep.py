@@ -1,19 +1,16 @@
-"""The crater-cap sweep (the paper's Table 1, Figs. 7-8): a small sweep (caps 10 and none, both
-methods, seeds 1 and 2, 1,800-2,000 s every 10 s, a 3 km synthetic catalogue) on two workers.
-table1.csv is recomputed from sweep_scores.parquet and the paper; the sweep's scores are those of
-ordinary runs of the same config and seed (one detection pass per seed and `reselect` give exactly
-what the stage path gives with a cap); outputs, recording, cache and clean-up. The sweep is a stage
-(`pipeline/stages/sweep.py`): its outputs are committed in runs/sw/sweep/.
+"""The crater-cap sweep (the paper's Table 1, Figs. 7-8) as a campaign: a small sweep (caps 10 and
+none, both methods, seeds 1 and 2, 1,800-2,000 s every 10 s, a 3 km synthetic catalogue) in this
+process. table1.csv is recomputed from sweep_scores.parquet and the paper; the sweep's scores are
+those of ordinary runs of the same config and seed (each sweep run is one); outputs, recording,
+resume, a changed sweep, and (slow) the same Table 1 on two Ray workers.
 """
 
 from __future__ import annotations
 
-import json
 import re
 import shutil
 from pathlib import Path
 
-import duckdb
 import numpy as np
 import polars as pl
 import pytest
@@ -21,14 +18,15 @@ import rerun as rr
 from conftest import REPO, run_stages
 from polars.testing import assert_frame_equal
 
+from pipeline.campaign.execute import run_campaign
+from pipeline.campaign.results import TIMING_COLUMNS
+from pipeline.campaign.sweep import sweep_spec, write_sweep
 from pipeline.config import RunConfig, load_config
-from pipeline.engine.runners import ProcessPoolRunner
 from pipeline.io.store import RunStore
-from pipeline.stages import DAG, SWEEP_TARGET
+from pipeline.io.workspace import workspace
 from pipeline.studies import suslu2025
 from pipeline.viz import recording
 
-DEFAULT_TOML = str(REPO / "runs" / "scenarios" / "default.toml")
 PAPER = REPO.parent / "shared" / "paper" / "visual-pose-estimation-moon-landing.md"
 SWEEP_ID = "sw"
 CAPS = (10, None)
@@ -42,28 +40,43 @@ TABLE1_SCHEMA = {"method": pl.String, "cap": pl.String, "quantity": pl.String, "
                  "crlb_rms": pl.Float64, "ratio_to_crlb": pl.Float64, "frames": pl.Int64,
                  "estimated": pl.Int64, "mean_used": pl.Float64}
 STAT_RTOL = 1e-12  # the same sums in another order: a few ulp
+SCENARIO = """extends = "default"
+
+[catalogue]
+synthetic_min_diam_km = 3.0
+db_path = "catalogue/craters.duckdb"
+
+[trajectory]
+start_s = 1800.0
+end_s = 2000.0
+frame_rate_hz = 0.1
+
+[sweep]
+caps = {caps}
+seeds = {seeds}
+workers = 2
+"""
 
 
 def label(cap: int | None) -> str:
     return "none" if cap is None else str(cap)
 
 
-def config(db: Path, run_id: str = SWEEP_ID, **sections) -> RunConfig:
-    overrides = {
-        "catalogue": {"synthetic_min_diam_km": 3.0, "db_path": str(db)},
-        "trajectory": {"start_s": 1800.0, "end_s": 2000.0, "frame_rate_hz": 0.1},
-        "sweep": {"caps": [10, "none"], "seeds": list(SEEDS), "workers": 2},
-    }
-    for name, values in sections.items():
-        overrides[name] = {**overrides.get(name, {}), **values} if isinstance(values, dict) \
-            else values
-    return load_config(DEFAULT_TOML, run_id, overrides)
+def write_scenario(root: Path, name: str = SWEEP_ID, caps=CAPS, seeds=SEEDS) -> Path:
+    path = root / "runs" / "scenarios" / f"{name}.toml"
+    path.write_text(SCENARIO.format(caps=[label(c) if c is None else c for c in caps],
+                                    seeds=list(seeds)).replace("'", '"'))
+    return path
 
 
-def run_sweep(cfg: RunConfig, root: Path, workers: int = 2) -> list[str]:
-    """`just sweep`: the sweep stage and what it needs, fan-out on a pool of `workers`."""
-    return run_stages(cfg, root, DAG.upstream_closure([SWEEP_TARGET]),
-                      runner=ProcessPoolRunner(workers))
+def run_sweep(scenario: Path, run_id: str = SWEEP_ID, **kwargs) -> tuple[dict, RunConfig]:
+    """`just sweep`: the sweep's campaign (in this process unless `workers` is given), then
+    Table 1 and its report."""
+    cfg = load_config(str(scenario), run_id)
+    spec = sweep_spec(str(scenario), cfg)
+    facts = run_campaign(spec, **({"local": True} if not kwargs else kwargs))
+    facts["written"] = write_sweep(spec, cfg, facts["tables"])
+    return facts, cfg
 
 
 class Sweep:
@@ -71,11 +84,14 @@ class Sweep:
 
     def __init__(self, root: Path):
         self.root = root
-        self.db = root / "catalogue" / "craters.duckdb"
-        self.cfg = config(self.db)
-        self.dir = root / "runs" / SWEEP_ID  # the run folder
-        self.out = self.dir / "sweep"  # the sweep stage's committed outputs
+        self.scenario = write_scenario(root)
+        self.dir = root / "runs" / SWEEP_ID  # the campaign folder: the sweep's outputs
+        self.out = self.dir
         self._runs: dict[tuple[int, int | None], RunStore] = {}
+
+    @property
+    def cfg(self) -> RunConfig:
+        return load_config(str(self.scenario), SWEEP_ID)
 
     def read(self, name: str) -> pl.DataFrame:
         return pl.read_parquet(self.out / f"{name}.parquet")
@@ -83,15 +99,13 @@ class Sweep:
     def table1(self) -> pl.DataFrame:
         return pl.read_csv(self.out / "table1.csv", schema=TABLE1_SCHEMA)
 
-    def manifest(self) -> dict:
-        return json.loads((self.dir / "manifest.json").read_text())
-
     def ordinary_run(self, seed: int, cap: int | None) -> RunStore:
         """Every stage of `just run` with detection.max_craters = cap and root seed = seed."""
         if (seed, cap) not in self._runs:
             run_id = f"seed{seed}-cap{label(cap)}"
-            cfg = config(self.db, run_id, seed=seed,
-                         detection={"max_craters": "none" if cap is None else cap})
+            cfg = load_config(str(self.scenario), run_id, {
+                "seed": seed, "detection": {"max_craters": label(cap) if cap is None else cap},
+                "estimation": {"methods": list(METHODS)}})
             store = RunStore(run_id, self.root / "runs")
             run_stages(cfg, store.root)
             self._runs[seed, cap] = store
@@ -101,15 +115,27 @@ class Sweep:
 @pytest.fixture(scope="module")
 def sweep(tmp_path_factory) -> Sweep:
     root = tmp_path_factory.mktemp("sweep")
+    shutil.copytree(REPO / "runs" / "scenarios", root / "runs" / "scenarios")
     (root / "catalogue").mkdir()
-    s = Sweep(root)
     mp = pytest.MonkeyPatch()
     mp.chdir(root)
-    try:
-        assert run_sweep(s.cfg, root / "runs") == ["ingest", "trajectory", "sweep"]
-    finally:
-        mp.undo()
-    return s
+    mp.setenv("CRATER_NAV_ROOT", str(root))
+    workspace.cache_clear()
+    s = Sweep(root)
+    facts, _ = run_sweep(s.scenario)
+    assert (facts["ran"], facts["ok"]) == (len(CAPS) * len(SEEDS), len(CAPS) * len(SEEDS))
+    yield s
+    mp.undo()
+    workspace.cache_clear()
+
+
+@pytest.fixture
+def in_sweep_root(sweep, monkeypatch):
+    monkeypatch.chdir(sweep.root)
+    monkeypatch.setenv("CRATER_NAV_ROOT", str(sweep.root))
+    workspace.cache_clear()
+    yield sweep
+    workspace.cache_clear()
 
 
 # --- table1.csv -----------------------------------------------------------------------------------
@@ -120,13 +146,8 @@ def test_table1_has_a_row_per_method_cap_and_quantity(sweep):
     assert t1.height == len(METHODS) * len(CAPS) * len(QUANTITIES)
     assert t1.select("method", "cap", "quantity").rows() == [
         (m, label(c), q) for m in METHODS for c in CAPS for q in QUANTITIES]
-    con = duckdb.connect(str(sweep.dir / "run.duckdb"), read_only=True)
-    try:
-        assert_frame_equal(con.sql("SELECT * FROM table1").pl(), t1, check_dtypes=False,
-                           check_exact=False, rel_tol=1e-15)  # CSV round trip of floats
-        assert_frame_equal(con.sql("SELECT * FROM sweep_scores").pl(), sweep.read("sweep_scores"))
-    finally:
-        con.close()
+    assert_frame_equal(sweep.read("table1"), t1, check_dtypes=False, check_exact=False,
+                       rel_tol=1e-15)  # CSV round trip of floats
 
 
 def paper_table1() -> dict[int | None, dict[str, float]]:
@@ -266,77 +287,69 @@ def test_sweep_recording_holds_a_series_per_method_and_cap(sweep):
             assert chunks.reader(index="frame", contents=attitude).to_polars().height == N_FRAMES
 
 
-def test_manifest_outputs_and_no_leftovers(sweep):
-    manifest = sweep.manifest()
-    assert set(manifest["stages"]) == {"ingest", "trajectory", "sweep"}
-    entry = manifest["stages"]["sweep"]
-    assert entry["info"]["tasks"] == len(CAPS) * len(SEEDS) and entry["info"]["workers"] == 2
-    assert set(entry["inputs"]) == {"ingest", "trajectory"}
-    store = RunStore(SWEEP_ID, sweep.root / "runs")
-    assert entry["inputs"]["trajectory"]["token"] == store.token("trajectory")
+def test_outputs_beside_the_campaigns_and_no_leftovers(sweep):
     figures = {f"fig8_{m}_caps_1800-2400s.png" for m in METHODS}  # no frame in Fig. 7's window
-    assert set(entry["outputs"]) == {"table1.csv", "table1.md", "sweep_scores.parquet",
-                                     "table1.parquet", "sweep_report.md", "sweep.rrd", *figures}
-    assert set(entry["tables"]) == {"sweep_scores", "table1"}
-    assert {"sweep_scores", "table1"} <= set(store.tables())
-    names = {p.name for p in sweep.out.iterdir()}
-    assert names == {*entry["outputs"], "stage.json"}, names  # no per-seed scratch left
-    assert not [p for p in sweep.dir.rglob("*") if "-seed" in p.name or ".tmp-" in p.name]
-    # one committed folder per stage, no stage outputs per task (detect, estimate, score)
-    assert {p.name.split(".")[0] for p in (sweep.dir / ".stages").iterdir()} == set(
-        manifest["stages"])
-    assert len(list((sweep.dir / ".stages").iterdir())) == 3
-    assert not (sweep.dir / "detect").exists() and not (sweep.dir / "estimate").exists()
+    sweep_outputs = {"table1.csv", "table1.md", "sweep_scores.parquet", "table1.parquet",
+                     "sweep_report.md", "sweep.rrd", *figures}
+    campaign = {"campaign.parquet", "campaign.duckdb", "campaign.rrd", "campaign.json",
+                "report.md", "spec.toml", "envelope_time.png", "envelope_altitude.png",
+                "nees.png", "runs", "results", ".lock"}
+    names = {p.name for p in sweep.dir.iterdir()}
+    assert names == sweep_outputs | campaign, names
+    assert not [p for p in sweep.dir.rglob("*") if ".tmp" in p.name]
+    # each ok run's folder is gone once its rows are collected; its scenario file stays
+    runs = {p.name for p in (sweep.dir / "runs").iterdir()}
+    ids = [f"{SWEEP_ID}-r{i:04d}" for i in range(len(CAPS) * len(SEEDS))]
+    assert {f"{i}.toml" for i in ids} | {f"{i}.log" for i in ids} <= runs
+    assert not runs & set(ids)
+    # the grid: caps in the order given, each with every seed
+    table = pl.read_parquet(sweep.dir / "campaign.parquet").unique("run", maintain_order=True)
+    assert table.select("seed", "detection.max_craters").rows() == [
+        (seed, str(label(cap) if cap is None else cap)) for cap in CAPS for seed in SEEDS]
 
 
-# --- cache ----------------------------------------------------------------------------------------
+# --- resume ---------------------------------------------------------------------------------------
 
 
-def stamps(run_dir: Path) -> dict:
-    """Manifest entries, the committed folders and the outputs' inodes (a rewrite commits a new
-    folder)."""
-    manifest = json.loads((run_dir / "manifest.json").read_text())
-    store = RunStore(run_dir.name, run_dir.parent)
-    return {"stages": manifest["stages"],
-            "tokens": {s: store.token(s) for s in ("ingest", "trajectory", "sweep")},
-            "inodes": {n: store.path(n).stat().st_ino for n in ("trajectory.parquet",
-                                                                "catalogue.json", "table1.csv")}}
-
-
-def test_a_second_sweep_is_skipped(sweep, monkeypatch, capsys):
-    before = stamps(sweep.dir)
-    monkeypatch.chdir(sweep.root)
-    assert run_sweep(sweep.cfg, sweep.root / "runs") == []
-    assert stamps(sweep.dir) == before
-    assert "sweep: up to date" in capsys.readouterr().out
+def test_a_second_sweep_runs_nothing_and_writes_the_same_table(in_sweep_root):
+    sweep = in_sweep_root
+    before = (sweep.out / "table1.csv").read_bytes()
+    facts, _ = run_sweep(sweep.scenario)
+    assert facts["ran"] == 0 and facts["skipped"] == len(CAPS) * len(SEEDS)
+    assert (sweep.out / "table1.csv").read_bytes() == before
 
 
 @pytest.mark.slow
-def test_a_changed_sweep_reruns_without_recomputing_upstream(sweep, tmp_path, monkeypatch):
-    """A copy of the sweep folder, swept again with seed 2 and cap 20 only: the sweep stage reruns,
-    ingest and trajectory (in the sweep's own manifest) do not."""
-    shutil.copytree(sweep.dir, tmp_path / "runs" / SWEEP_ID, symlinks=True)
-    run_dir = tmp_path / "runs" / SWEEP_ID
-    before = stamps(run_dir)
+def test_a_changed_sweep_reruns_only_its_changed_runs(sweep, tmp_path, monkeypatch):
+    """A copy of the sweep folder, swept again with seeds (1, 3): the runs of seed 1 are found
+    done, those of seed 3 run; Table 1 pools seeds 1 and 3."""
+    shutil.copytree(sweep.root / "runs", tmp_path / "runs", symlinks=True)
+    (tmp_path / "catalogue").mkdir()
+    shutil.copy(sweep.root / "catalogue" / "craters.duckdb", tmp_path / "catalogue")
     monkeypatch.chdir(tmp_path)
-    cfg = config(sweep.db, sweep={"caps": [20], "seeds": [2]})
-    assert run_sweep(cfg, tmp_path / "runs") == ["sweep"]
-    after = stamps(run_dir)
-    for stage in ("ingest", "trajectory"):
-        assert after["stages"][stage] == before["stages"][stage]
-        assert after["tokens"][stage] == before["tokens"][stage]
-    assert after["inodes"]["trajectory.parquet"] == before["inodes"]["trajectory.parquet"]
-    assert after["inodes"]["catalogue.json"] == before["inodes"]["catalogue.json"]
-    assert after["stages"]["sweep"]["key"] != before["stages"]["sweep"]["key"]
-    assert after["tokens"]["sweep"] != before["tokens"]["sweep"]
-    t1 = pl.read_csv(run_dir / "sweep" / "table1.csv", schema=TABLE1_SCHEMA)
-    assert set(t1["cap"]) == {"20"} and t1.height == len(METHODS) * len(QUANTITIES)
-    assert set(pl.read_parquet(run_dir / "sweep" / "sweep_scores.parquet")["seed"]) == {2}
-    assert not [p for p in run_dir.rglob("*") if "-seed" in p.name]
-    # the replaced sweep folder is gone; the run database's views read the new tables
-    assert not (run_dir / before["tokens"]["sweep"]).exists()
-    con = duckdb.connect(str(run_dir / "run.duckdb"), read_only=True)
+    monkeypatch.setenv("CRATER_NAV_ROOT", str(tmp_path))
+    workspace.cache_clear()
     try:
-        assert set(con.sql("SELECT DISTINCT seed FROM sweep_scores").pl()["seed"]) == {2}
+        scenario = write_scenario(tmp_path, seeds=(1, 3))
+        facts, _ = run_sweep(scenario)
     finally:
-        con.close()
+        workspace.cache_clear()
+    assert facts["ran"] == len(CAPS) and facts["skipped"] == len(CAPS)
+    scores = pl.read_parquet(tmp_path / "runs" / SWEEP_ID / "sweep_scores.parquet")
+    assert set(scores["seed"]) == {1, 3}
+    before = sweep.read("sweep_scores").filter(pl.col("seed") == 1)
+    assert_frame_equal(scores.filter(pl.col("seed") == 1), before)
+
+
+@pytest.mark.slow
+def test_the_same_table1_on_two_ray_workers(in_sweep_root):
+    sweep = in_sweep_root
+    scenario = write_scenario(sweep.root, "sw_ray")
+    run_sweep(scenario, "sw-ray", workers=2)
+    ray_dir = sweep.root / "runs" / "sw-ray"
+    assert (ray_dir / "table1.csv").read_bytes() == (sweep.out / "table1.csv").read_bytes()
+    assert_frame_equal(pl.read_parquet(ray_dir / "sweep_scores.parquet"),
+                       sweep.read("sweep_scores"))
+    a = pl.read_parquet(ray_dir / "campaign.parquet").drop(*TIMING_COLUMNS, "run_id")
+    b = pl.read_parquet(sweep.dir / "campaign.parquet").drop(*TIMING_COLUMNS, "run_id")
+    assert a.equals(b)

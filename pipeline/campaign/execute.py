@@ -6,31 +6,42 @@ Folder of a campaign `<name>` (spec runs/campaigns/<name>.toml):
       spec.toml                     the spec as run
       runs/<name>-rNNNN.toml        each run's scenario (`extends` the base; overrides and draws):
                                     `just run <that file>` reruns it alone, with its recordings
-      runs/<name>-rNNNN/            each run's scratch run folder (the executor's RunStore)
+      runs/<name>-rNNNN/            each run's run folder (the executor's RunStore); deleted once
+                                    its rows are collected unless `keep_runs` or it failed
       runs/<name>-rNNNN.log         what the run printed (and its traceback when it failed)
-      results/<name>-rNNNN.*        its collected rows (windows, frames) and, last, its .json:
-                                    a run with its .json is done; a resumed campaign skips it
-      campaign.parquet, campaign.duckdb, report.md, *.png      (see `campaign.results`)
+      results/<name>-rNNNN.*        its collected rows (windows, navigation, scores) and, last,
+                                    its .json: a run with its .json for the same scenario text
+                                    is done; a resumed campaign skips it
+      campaign.parquet, campaign.duckdb, campaign.rrd, report.md, *.png  (`campaign.results`)
 
 Each run executes the stages of `just run` up to `spec.target` with the one Executor, in its own
-run folder, recordings off unless `spec.recordings` (`CRATER_NAV_RECORDINGS`, `pipeline.io.rrd`).
-The catalogue database is built once before the runs (every run shares it, read-only); the runs
-then only find it current. A run whose drawn config fails validation is recorded with status
+run folder, its recordings and report figures off unless `spec.recordings` (`CRATER_NAV_VISUALS`,
+`pipeline.io.rrd`).
+The catalogue database is built once before the runs (every run shares it, read-only) and loaded
+once: its arrays go to Ray's object store (in this process: handed over directly), and each run's
+stages take them from there (`catalogue_db.share_catalogue`) instead of reading the database.
+A run whose drawn config fails validation is recorded with status
 `invalid_config` and never started; one that raises is recorded `failed` with its error (one line;
 the traceback in its log); a Ray task lost to a dead worker `crashed`. The campaign completes.
 
 Ray: `ray.init(address)` (None: `RAY_ADDRESS` if set, else a local instance with `workers` CPUs);
 each task takes one CPU; `workers` also caps the tasks in flight on a cluster. The arguments every
-task shares are put in the object store once. Workers read the project checkout and the catalogue
-from the same path as the driver: a multi-node cluster needs the workspace on a shared file system.
+task shares are put in the object store once. A task whose worker process dies is retried once
+(`max_retries`), then recorded `crashed`. A task carries its run's scenario text and returns its
+rows: the results live where the driver is. A worker needs the checkout (the code, the base
+scenario) and the catalogue database at the driver's paths (its stages check the database still
+holds the catalogue the arrays came from): a shared file system, or the same checkout and
+`just ingest` of the same catalogue on every node.
 """
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
+import hashlib
 import json
 import os
+import shutil
 import time
 import traceback
 from collections.abc import Callable, Iterator
@@ -45,14 +56,21 @@ from pipeline.config import RunConfig, load_config
 from pipeline.engine.executor import Executor
 from pipeline.engine.progress import console, progress_bar
 from pipeline.errors import ConfigError, PipelineError
-from pipeline.io.rrd import RECORDINGS_ENV
+from pipeline.io.catalogue_db import Catalogue, load_recorded_catalogue, share_catalogue
+from pipeline.io.rrd import VISUALS_ENV
 from pipeline.io.store import RunStore, atomic_write_text
 from pipeline.io.workspace import workspace
 from pipeline.ops.score import NAV_SOURCES, QUANTITY_NAMES, summarize_navigation, windows
 
 METHOD_COLUMNS = ("paper", "joint")  # estimators whose window statistics the table carries
-FRAME_COLUMNS = ("t_s", "status", "err_pos_x_m", "err_pos_y_m", "err_pos_z_m", "sigma_pos_x_m",
-                 "sigma_pos_y_m", "sigma_pos_z_m", "nees_pos", "nees_vel", "nees_att")
+NAVIGATION_COLUMNS = ("t_s", "status", "altitude_m", *(
+    f"{kind}_{q}_{c}_{unit}" for kind in ("err", "sigma")
+    for q, unit in (("pos", "m"), ("att", "rad")) for c in "xyz"),
+    "nees_pos", "nees_vel", "nees_att")
+# A task holds one CPU (Ray sets OMP_NUM_THREADS=1 for it): its libraries' thread pools too, so
+# that N workers on N cores do not oversubscribe them.
+ONE_THREAD = {"POLARS_MAX_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+PARTS = ("windows", "navigation", "scores")  # a run's collected tables (results/<run>.<part>)
 
 
 @dataclass(frozen=True)
@@ -73,6 +91,9 @@ class CampaignPaths:
     def done(self, run_id: str) -> Path:
         return self.results / f"{run_id}.json"
 
+    def part(self, run_id: str, part: str) -> Path:
+        return self.results / f"{run_id}.{part}.parquet"
+
 
 def campaign_paths(spec: CampaignSpec) -> CampaignPaths:
     return CampaignPaths(workspace().runs_dir / spec.name)
@@ -83,6 +104,8 @@ class RunTask:
     index: int
     run_id: str
     scenario: str  # the run's scenario file
+    scenario_text: str  # its text: a worker on another node writes it there
+    run_key: str  # what its results depend on: a result under another key is not this run's
 
 
 # --- one run (in a Ray worker or in this process) ------------------------------------------------
@@ -96,20 +119,36 @@ def execute_stages(cfg: RunConfig, store: RunStore, target: str) -> None:
     ex.execute(ex.plan(cfg, ex.dag.upstream_closure([target], cfg)), store)
 
 
-def collect(cfg: RunConfig, store: RunStore) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """A finished run's rows: per window (the filter's and each method's statistics) and per
-    navigation record (the filter's errors, sigmas and NEES). Empty when not computed."""
+def collect(cfg: RunConfig, store: RunStore) -> dict[str, pl.DataFrame]:
+    """A finished run's rows: `windows` (per window: the filter's, the IMU-only path's and each
+    method's statistics), `navigation` (per filter record: errors, sigmas, NEES) and `scores`
+    (per method and frame: errors, sigmas, NEES, the Cramér-Rao bound, the true altitude; scored
+    here when the run stopped at `estimate`). Empty where the run has no such table."""
+    from pipeline.stages.score import frame_scores
+
     arts = store.artifacts()
+    out = {part: pl.DataFrame() for part in PARTS}
+    trajectory = (pl.read_parquet(arts["trajectory.parquet"], columns=["frame", "altitude_m"])
+                  if "trajectory.parquet" in arts else None)
+    if "scores.parquet" in arts:
+        scores = pl.read_parquet(arts["scores.parquet"])
+    elif "estimates.parquet" in arts:
+        scores = frame_scores(cfg, lambda name: arts[name])
+    else:
+        scores = pl.DataFrame()
+    if scores.height and trajectory is not None:
+        out["scores"] = scores.join(trajectory, on="frame", how="left", maintain_order="left")
+    summary = (pl.read_parquet(arts["summary.parquet"]) if "summary.parquet" in arts
+               else pl.DataFrame())
     if "navigation.parquet" not in arts:
-        return pl.DataFrame(), pl.DataFrame()
+        return out
     nav = pl.read_parquet(arts["navigation.parquet"])
+    out["navigation"] = nav.select(NAVIGATION_COLUMNS)
     if "navigation_summary.parquet" in arts:
         nav_summary = pl.read_parquet(arts["navigation_summary.parquet"])
     else:
         t_impact = json.loads(arts["trajectory.json"].read_text())["t_impact_s"]
         nav_summary = summarize_navigation(nav, windows(cfg.scoring, t_impact))
-    summary = (pl.read_parquet(arts["summary.parquet"]) if "summary.parquet" in arts
-               else pl.DataFrame())
     rows = []
     for w in nav_summary.filter(pl.col("source") == "filter").iter_rows(named=True):
         row: dict[str, Any] = {"window": w["window"], "start_s": w["start_s"],
@@ -134,40 +173,62 @@ def collect(cfg: RunConfig, store: RunStore) -> tuple[pl.DataFrame, pl.DataFrame
             row[f"{method}_share_ok"] = m["share_estimated"][0] if m.height else None
             row[f"{method}_mean_nees"] = m["mean_nees"][0] if m.height else None
         rows.append(row)
-    frames = nav.select(FRAME_COLUMNS)
-    return pl.DataFrame(rows, infer_schema_length=None), frames
+    out["windows"] = pl.DataFrame(rows, infer_schema_length=None)
+    return out
 
 
-def run_one(task: RunTask, shared: dict[str, Any]) -> dict[str, Any]:
+def run_one(task: RunTask, shared: dict[str, Any], catalogue: Catalogue | None = None
+            ) -> dict[str, Any]:
     """Run one campaign run; never raises for the run's own failure: returns its status, error
-    (one line), wall time and rows."""
-    os.environ["CRATER_NAV_ROOT"] = shared["root"]
-    workspace.cache_clear()
-    previous = os.environ.get(RECORDINGS_ENV)
-    os.environ[RECORDINGS_ENV] = "on" if shared["recordings"] else "off"
+    (one line), wall time and collected tables. `catalogue`: the shared catalogue's arrays."""
     t0 = time.perf_counter()
     status, error = "ok", ""
-    windows_rows, frames = pl.DataFrame(), pl.DataFrame()
-    log = Path(shared["runs_dir"]) / f"{task.run_id}.log"
+    parts = {part: pl.DataFrame() for part in PARTS}
+    runs_dir = Path(shared["runs_dir"])
+    store = RunStore(task.run_id, runs_dir)
     try:
-        with open(log, "w") as f, contextlib.redirect_stdout(f), contextlib.redirect_stderr(f):
+        runs_dir.mkdir(parents=True, exist_ok=True)
+        scenario = Path(task.scenario)
+        if not scenario.is_file() or scenario.read_text() != task.scenario_text:
+            atomic_write_text(scenario, task.scenario_text)  # a node without the driver's files
+        if catalogue is not None:
+            share_catalogue(catalogue)
+        with _environment({"CRATER_NAV_ROOT": shared["root"],
+                           VISUALS_ENV: "on" if shared["recordings"] else "off"}), \
+                open(runs_dir / f"{task.run_id}.log", "w") as f, \
+                contextlib.redirect_stdout(f), contextlib.redirect_stderr(f):
             try:
                 cfg = load_config(task.scenario, task.run_id)
-                store = RunStore(task.run_id, Path(shared["runs_dir"]))
                 execute_stages(cfg, store, shared["target"])
-                windows_rows, frames = collect(cfg, store)
-            except Exception as exc:
+                parts = collect(cfg, store)
+            except Exception:
                 traceback.print_exc(file=f)
-                status = "failed"
-                error = (f"{type(exc).__name__}: {exc}".splitlines() or [""])[0][:500]
-    finally:
-        if previous is None:
-            os.environ.pop(RECORDINGS_ENV, None)
-        else:
-            os.environ[RECORDINGS_ENV] = previous
+                raise
+    except Exception as exc:
+        status = "failed"
+        error = (f"{type(exc).__name__}: {exc}".splitlines() or [""])[0][:500]
+    if status == "ok" and not shared["keep_runs"]:
+        shutil.rmtree(store.run_dir, ignore_errors=True)
     return {"index": task.index, "run_id": task.run_id, "status": status, "error": error,
             "wall_s": time.perf_counter() - t0, "node": _node(),
-            "windows": windows_rows, "frames": frames}
+            "run_key": task.run_key, **parts}
+
+
+@contextlib.contextmanager
+def _environment(values: dict[str, str]) -> Iterator[None]:
+    """Environment variables set for the block (the workspace found again), then restored."""
+    before = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    workspace.cache_clear()
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+        workspace.cache_clear()
 
 
 def _node() -> str:
@@ -185,12 +246,22 @@ def _node() -> str:
 # --- the driver ----------------------------------------------------------------------------------
 
 
+def _failed_row(task: RunTask, status: str, error: str) -> dict[str, Any]:
+    return {"index": task.index, "run_id": task.run_id, "status": status,
+            "error": error.splitlines()[0][:500] if error else "", "wall_s": float("nan"),
+            "node": "", "run_key": task.run_key,
+            **{part: pl.DataFrame() for part in PARTS}}
+
+
 def prepare(spec: CampaignSpec, paths: CampaignPaths) -> tuple[list[RunTask], list[dict], RunConfig
                                                                 | None]:
     """Each run's scenario file, written and validated: the tasks to run, the rows of runs whose
     draw is not a valid config (`invalid_config`), and the first valid config."""
+    from pipeline.stages import DAG
+
     paths.runs.mkdir(parents=True, exist_ok=True)
     paths.results.mkdir(parents=True, exist_ok=True)
+    ex = Executor(DAG)
     tasks, invalid, first = [], [], None
     for i in range(spec.runs):
         run_id = spec.run_id(i)
@@ -204,28 +275,49 @@ def prepare(spec: CampaignSpec, paths: CampaignPaths) -> tuple[list[RunTask], li
         try:
             cfg = load_config(str(path), run_id)
         except ConfigError as exc:
-            invalid.append({"index": i, "run_id": run_id, "status": "invalid_config",
-                            "error": str(exc).splitlines()[0][:500], "wall_s": 0.0, "node": "",
-                            "windows": pl.DataFrame(), "frames": pl.DataFrame()})
+            key = hashlib.sha256(f"invalid\n{exc}".encode()).hexdigest()[:16]
+            invalid.append(_failed_row(RunTask(i, run_id, str(path), text, key),
+                                       "invalid_config", str(exc)))
             continue
         first = first or cfg
-        tasks.append(RunTask(i, run_id, str(path)))
+        tasks.append(RunTask(i, run_id, str(path), text, run_key(ex, cfg, spec)))
     return tasks, invalid, first
 
 
-def save_result(paths: CampaignPaths, result: dict[str, Any], draws: dict[str, Any],
-                seed: int) -> None:
-    """A run's rows, then its .json (the marker that it is done)."""
+def run_key(ex: Executor, cfg: RunConfig, spec: CampaignSpec) -> str:
+    """What a run's results depend on: the executor's cache key of its target stage (the config
+    every stage up to it reads, their code), and whether it records."""
+    return hashlib.sha256(f"{ex.key(spec.target, cfg)}\n{spec.target}\n{spec.recordings}"
+                          .encode()).hexdigest()[:16]
+
+
+def save_result(paths: CampaignPaths, result: dict[str, Any], draws: dict[str, Any]) -> None:
+    """A run's tables, then its .json (the marker that it is done)."""
     rid = result["run_id"]
-    for part in ("windows", "frames"):
-        frame: pl.DataFrame = result[part]
-        target = paths.results / f"{rid}.{part}.parquet"
+    for part in PARTS:
+        target = paths.part(rid, part)
         tmp = target.with_name(f".tmp-{os.getpid()}-{target.name}")
-        frame.write_parquet(tmp)
+        result[part].write_parquet(tmp)
         os.replace(tmp, target)
-    meta = {k: result[k] for k in ("index", "run_id", "status", "error", "wall_s", "node")}
+    meta = {k: result[k] for k in ("index", "run_id", "status", "error", "wall_s", "node",
+                                   "run_key")}
     atomic_write_text(paths.done(rid), json.dumps(
-        {**meta, "seed": seed, "draws": draws}, indent=1, default=str) + "\n")
+        {**meta, "seed": draws["seed"], "draws": draws}, indent=1, default=str) + "\n")
+
+
+def is_done(paths: CampaignPaths, task: RunTask, retry_failed: bool) -> bool:
+    """Whether run `task` has a result under its current key; one lost with its worker
+    (`crashed`) is not, nor, with `retry_failed`, one that failed."""
+    p = paths.done(task.run_id)
+    if not p.is_file():
+        return False
+    try:
+        meta = json.loads(p.read_text())
+    except (OSError, ValueError):
+        return False
+    if meta.get("run_key") != task.run_key or meta.get("status") == "crashed":
+        return False
+    return not (retry_failed and meta.get("status") != "ok")
 
 
 @contextlib.contextmanager
@@ -240,68 +332,89 @@ def campaign_lock(paths: CampaignPaths) -> Iterator[None]:
         yield
 
 
+class _Tally:
+    """Runs done and failed so far, for the progress bar's description."""
+
+    def __init__(self, name: str, where: str):
+        self.name, self.where, self.ok, self.failed = name, where, 0, 0
+
+    def add(self, status: str) -> str:
+        if status == "ok":
+            self.ok += 1
+        else:
+            self.failed += 1
+        return self.text()
+
+    def text(self) -> str:
+        return f"campaign {self.name} {self.where}: {self.ok} ok, {self.failed} failed"
+
+
 def run_campaign(spec: CampaignSpec, *, address: str | None = None, workers: int | None = None,
                  local: bool = False, retry_failed: bool = False) -> dict[str, Any]:
     """Run the campaign's missing runs (all, the first time; `retry_failed`: also those recorded
-    failed), then write its table and report. `local`: in this process, one run after the other
-    (no Ray). Returns facts: runs run, skipped, wall time, workers."""
+    failed), then write its tables and report. `local`: in this process, one run after the other
+    (no Ray). Returns facts: runs run, skipped, invalid; the wall time of the command and of its
+    runs alone (`runs_s`: from the first task to the last result); workers; the tables."""
     from pipeline.campaign.results import write_outputs
     from pipeline.stages import DAG
 
     paths = campaign_paths(spec)
     t0 = time.perf_counter()
     with campaign_lock(paths):
-        atomic_write_text(paths.root / "spec.toml", spec.path.read_text())
+        atomic_write_text(paths.root / "spec.toml", spec.text)
         tasks, invalid, first = prepare(spec, paths)
         for row in invalid:
-            save_result(paths, row, spec.draws(row["index"]), spec.draws(row["index"])["seed"])
-
-        def is_done(run_id: str) -> bool:
-            p = paths.done(run_id)
-            if not p.is_file():
-                return False
-            return not (retry_failed and json.loads(p.read_text())["status"] != "ok")
-
-        pending = [t for t in tasks if not is_done(t.run_id)]
+            save_result(paths, row, spec.draws(row["index"]))
+        pending = [t for t in tasks if not is_done(paths, t, retry_failed)]
         console.print(f"campaign {spec.name}: {spec.runs} runs ({len(invalid)} invalid configs, "
                       f"{len(tasks) - len(pending)} already done, {len(pending)} to run)")
-        if pending and first is not None:  # the shared catalogue, built (or found) once
+        catalogue = None
+        if pending and first is not None:  # the shared catalogue, built (or found) once, loaded
+            store = RunStore(f"{spec.name}-ingest", paths.runs)
             with open(paths.runs / "ingest.log", "w") as f, contextlib.redirect_stdout(f), \
                     contextlib.redirect_stderr(f):
                 ex = Executor(DAG)
-                ex.execute(ex.plan(first, ["ingest"]), RunStore(f"{spec.name}-ingest",
-                                                                paths.runs))
+                ex.execute(ex.plan(first, ["ingest"]), store)
+            catalogue = load_recorded_catalogue(store.path("catalogue.json"))
         shared = {"root": str(workspace().root), "runs_dir": str(paths.runs),
-                  "target": spec.target, "recordings": spec.recordings}
+                  "target": spec.target, "recordings": spec.recordings,
+                  "keep_runs": spec.keep_runs}
 
         def save(result: dict[str, Any]) -> None:
-            d = spec.draws(result["index"])
-            save_result(paths, result, d, d["seed"])
+            save_result(paths, result, spec.draws(result["index"]))
 
-        used_workers = 1
-        if pending:
-            if local:
-                with progress_bar(f"campaign {spec.name}", len(pending)) as advance:
-                    for t in pending:
-                        save(run_one(t, shared))
-                        advance()
-            else:
-                used_workers = _run_on_ray(pending, shared, save, address, workers, spec.name)
+        used_workers, runs_s = 1, 0.0
+        if pending and local:
+            tally = _Tally(spec.name, "in this process")
+            t_runs = time.perf_counter()
+            with progress_bar(tally.text(), len(pending)) as advance:
+                for t in pending:
+                    result = run_one(t, shared, catalogue)
+                    save(result)
+                    advance(description=tally.add(result["status"]))
+            runs_s = time.perf_counter() - t_runs
+        elif pending:
+            used_workers, runs_s = _run_on_ray(pending, shared, catalogue, save, address,
+                                               workers, spec.name)
+        execution = {"ran": len(pending), "runs_s": runs_s, "workers": used_workers}
+        facts = write_outputs(spec, paths, execution)
         wall = time.perf_counter() - t0
-        facts = write_outputs(spec, paths)
-    return {"ran": len(pending), "skipped": spec.runs - len(pending) - len(invalid),
-            "invalid": len(invalid), "wall_s": wall, "workers": used_workers, **facts}
+    return {"skipped": spec.runs - len(pending) - len(invalid), "invalid": len(invalid),
+            "wall_s": wall, **execution, **facts}
 
 
-def _run_on_ray(pending: list[RunTask], shared: dict[str, Any],
+def _run_on_ray(pending: list[RunTask], shared: dict[str, Any], catalogue: Catalogue | None,
                 save: Callable[[dict[str, Any]], None], address: str | None,
-                workers: int | None, name: str) -> int:
+                workers: int | None, name: str) -> tuple[int, float]:
+    """Run the tasks on Ray, at most `workers` at once; (workers, seconds from the first task's
+    submission to the last result)."""
     import ray
 
     started = False
     if not ray.is_initialized():
         kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
-                                  "configure_logging": False}
+                                  "configure_logging": False,
+                                  "runtime_env": {"env_vars": ONE_THREAD}}
         if address is None and not os.environ.get("RAY_ADDRESS"):
             kwargs["num_cpus"] = workers or os.cpu_count() or 1
         ray.init(address=address, **kwargs)
@@ -309,30 +422,28 @@ def _run_on_ray(pending: list[RunTask], shared: dict[str, Any],
     try:
         cpus = int(ray.cluster_resources().get("CPU", 1))
         in_flight = max(1, min(workers or cpus, cpus))
-        shared_ref = ray.put(shared)  # once: every task reads the same object
+        shared_ref = ray.put(shared)  # once: every task reads the same objects
+        catalogue_ref = ray.put(catalogue)
         remote = ray.remote(num_cpus=1, max_retries=1)(run_one)
         queue = list(pending)
         running: dict[Any, RunTask] = {}
-        with progress_bar(f"campaign {name} on Ray ({in_flight} workers)",
-                          len(pending)) as advance:
+        tally = _Tally(name, f"on Ray ({in_flight} workers)")
+        t_runs = time.perf_counter()
+        with progress_bar(tally.text(), len(pending)) as advance:
             while queue or running:
                 while queue and len(running) < in_flight:
                     t = queue.pop(0)
-                    running[remote.remote(t, shared_ref)] = t
+                    running[remote.remote(t, shared_ref, catalogue_ref)] = t
                 done, _ = ray.wait(list(running), num_returns=1)
                 for ref in done:
                     t = running.pop(ref)
                     try:
                         result = ray.get(ref)
-                    except Exception as exc:  # the worker died, the node was lost, ...
-                        result = {"index": t.index, "run_id": t.run_id, "status": "crashed",
-                                  "error": (f"{type(exc).__name__}: {exc}".splitlines()
-                                            or [""])[0][:500], "wall_s": float("nan"),
-                                  "node": "", "windows": pl.DataFrame(),
-                                  "frames": pl.DataFrame()}
+                    except Exception as exc:  # the worker died twice, the node was lost, ...
+                        result = _failed_row(t, "crashed", f"{type(exc).__name__}: {exc}")
                     save(result)
-                    advance()
-        return in_flight
+                    advance(description=tally.add(result["status"]))
+        return in_flight, time.perf_counter() - t_runs
     finally:
         if started:
             ray.shutdown()

@@ -1,14 +1,16 @@
 """Campaign specs: a TOML file of runs/campaigns/ (or any .toml path) and the per-run draws.
 
 ```toml
-base = "default"            # a scenario name of runs/scenarios/ (the runs' `extends`)
+base = "default"            # a scenario of runs/scenarios/, or a .toml path (from the spec)
 runs = 100                  # number of runs, 1..100,000
 seed = 2026                 # root seed: every draw of run i comes from (seed, i) alone
 target = "score"            # the stage each run brings up to date (with everything it needs)
 recordings = false          # each run's Rerun recordings (off: empty .rrd placeholders)
-catalogue_errors = true     # built-in: a per-run detection.world_seed (the catalogue's errors)
+keep_runs = false           # keep each run's folder (off: deleted once its rows are collected)
+catalogue_errors = false    # built-in: a per-run detection.world_seed (the catalogue's errors)
 jitter = false              # built-in: a per-run trajectory.jitter_seed (the pointing jitter)
-mounting_sigma_deg = 0.0    # built-in: camera mounting angles ~ N(0, sigma) per axis (deg)
+mounting_sigma_deg = 0.0    # built-in: the true camera mounting ~ nominal + N(0, sigma) per
+                            # axis (deg); the navigator assumes the nominal one
 
 [overrides]                 # fixed for every run, merged over the base scenario (nested)
 trajectory = { start_s = 1800.0, end_s = 2400.0 }
@@ -18,12 +20,16 @@ trajectory = { start_s = 1800.0, end_s = 2400.0 }
 "detection.sigma_bearing" = { kind = "uniform", low = 5e-5, high = 2e-4 }
 "imu.grade" = { kind = "choice", values = ["tactical", "navigation"] }
 "navigation.gate_probability" = { values = [0.999, 0.9999] }   # a sweep grid
+"seed" = { values = [1, 2, 3] }              # the run seeds as a grid (runs <= its size)
 ```
 
 Decisions:
-- Each run's `seed` is always drawn (from the root seed: `SeedSequence(seed, spawn_key=(i,))`,
-  the same as the i-th child of `SeedSequence(seed).spawn`), and disperses what the run's seed
+- Each run's `seed` is drawn (from the root seed: `SeedSequence(seed, spawn_key=(i,))`, the
+  same as the i-th child of `SeedSequence(seed).spawn`), and disperses what the run's seed
   drives: the navigation filter's initial state, the IMU's errors and noise, the detections.
+  A grid over `seed` (`{values = [...]}`, the only dispersion `seed` takes) sets it instead: the
+  paper's sweep runs seeds 1, 2, 3 (`campaign.sweep`); no more runs than the grid's combinations
+  then (a repeated seed would repeat a run, not sample anew).
 - Every other draw of run i comes from its own stream `SeedSequence(seed, spawn_key=(i, k))`
   with k a stable hash (CRC-32) of the dispersed key: adding a dispersion does not change the
   others' draws, and a run's draws do not depend on how many runs there are or who runs them.
@@ -34,7 +40,11 @@ Decisions:
 - `normal` and `uniform` apply to float fields; `choice` and grids to any field, their values
   checked against the field's type here. A draw outside a field's range (a normal's tail) is not
   a spec error: the run is recorded as failed with status `invalid_config` and the config error
-  (see `campaign.execute`); a wrong key, kind or type is a spec error at load.
+  (see `campaign.execute`); a wrong key, kind or type is a spec error at load, and so is a base
+  with overrides that is not a valid config.
+- A built-in needs what it disperses, else it is a spec error (a draw that changes nothing):
+  the catalogue errors the physical sensor and a catalogue sigma > 0, the mounting the physical
+  sensor and the coin-flip identification, the jitter seed a jitter rate > 0.
 - The catalogue (`catalogue.*`) and the run's name cannot be dispersed: every run shares the
   base's catalogue database, built once before the runs start.
 Every spec error is one line naming the file and the key.
@@ -43,7 +53,6 @@ Every spec error is one line naming the file and the key.
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import math
 import tomllib
 import types
@@ -56,6 +65,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.config import (
+    MAX_SEED,
     RunConfig,
     _plain_name,
     validate_run_id,
@@ -65,11 +75,9 @@ from pipeline.errors import ConfigError
 from pipeline.io.workspace import workspace
 
 MAX_RUNS = 100_000
-KINDS = ("normal", "uniform", "choice", "grid")
-SPEC_KEYS = ("base", "runs", "seed", "target", "recordings", "catalogue_errors", "jitter",
-             "mounting_sigma_deg", "overrides", "dispersions")
-FORBIDDEN_PREFIXES = ("catalogue", "name", "run_id", "seed")
-MAX_SEED = 2**63 - 1
+SPEC_KEYS = ("base", "runs", "seed", "target", "recordings", "keep_runs", "catalogue_errors",
+             "jitter", "mounting_sigma_deg", "overrides", "dispersions")
+FORBIDDEN_PREFIXES = ("catalogue", "name", "run_id")
 
 
 @dataclass(frozen=True)
@@ -96,17 +104,20 @@ class CampaignSpec:
     """A campaign: `runs` runs of the `base` scenario with `overrides` and `dispersions`."""
 
     name: str
-    path: Path
-    base: str
+    path: Path  # the spec file (a sweep: its scenario)
+    base: str  # a scenario name, or an absolute .toml path
     runs: int
     seed: int
     target: str
     recordings: bool
+    keep_runs: bool
     catalogue_errors: bool
     jitter: bool
     mounting_sigma_deg: float
+    nominal_mounting_deg: tuple[float, ...]  # the base's camera mounting (z, y, x, deg)
     overrides: dict[str, Any]
     dispersions: tuple[Dispersion, ...]
+    text: str  # the spec as TOML (a sweep's: made from its scenario)
 
     @property
     def grid(self) -> tuple[Dispersion, ...]:
@@ -120,7 +131,7 @@ class CampaignSpec:
         seed and the index alone."""
         if not 0 <= index < self.runs:
             raise IndexError(f"run {index} of a campaign of {self.runs}")
-        out: dict[str, Any] = {"seed": _seed_of(self.seed, index, "seed")}
+        out: dict[str, Any] = {"seed": _seed_of(self.seed, index, "seed")}  # unless a grid
         if self.catalogue_errors:
             out["detection.world_seed"] = _seed_of(self.seed, index, "detection.world_seed")
         if self.jitter:
@@ -128,12 +139,14 @@ class CampaignSpec:
         if self.mounting_sigma_deg > 0:
             rng = _rng(self.seed, index, "detection.camera_mounting_deg")
             out["detection.camera_mounting_deg"] = [
-                float(x) for x in rng.normal(0.0, self.mounting_sigma_deg, 3)]
-        grid = self.grid
-        if grid:
-            combos = list(itertools.product(*(d.values for d in grid)))
-            for d, v in zip(grid, combos[index % len(combos)], strict=True):
-                out[d.key] = v
+                float(m + x) for m, x in zip(self.nominal_mounting_deg,
+                                             rng.normal(0.0, self.mounting_sigma_deg, 3),
+                                             strict=True)]
+        rest, picks = index, []  # combination index % size, in mixed radix (last fastest)
+        for d in reversed(self.grid):
+            rest, j = divmod(rest, len(d.values))
+            picks.append((d.key, d.values[j]))
+        out.update(reversed(picks))
         for d in self.dispersions:
             if d.kind != "grid":
                 out[d.key] = d.draw(_rng(self.seed, index, d.key))
@@ -223,8 +236,11 @@ def _dispersion(key: str, raw: Any) -> Dispersion:
         raise ConfigError(f"{where}: expected a table such as {{kind = \"normal\", mean = 0.0, "
                           f"sigma = 1.0}}, got {raw!r}")
     if any(key == p or key.startswith(p + ".") for p in FORBIDDEN_PREFIXES):
-        raise ConfigError(f"{where}: {key!r} cannot be dispersed (the seed is built in; the "
-                          "catalogue is shared by every run)")
+        raise ConfigError(f"{where}: {key!r} cannot be dispersed (the catalogue is shared by "
+                          "every run; the run's name is the campaign's)")
+    if key == "seed" and set(raw) != {"values"}:
+        raise ConfigError(f"{where}: the seed is drawn per run (built in); it takes only a grid "
+                          "of values, {values = [1, 2, 3]}")
     try:
         tp = field_type(key)
     except ConfigError as exc:
@@ -290,16 +306,26 @@ def _load(path: Path) -> CampaignSpec:
         data = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"not valid TOML: {exc}") from None
+    return spec_from_data(data, validate_run_id(path.stem), path, path.read_text())
+
+
+def spec_from_data(data: dict[str, Any], name: str, path: Path, text: str) -> CampaignSpec:
+    """A checked spec from its TOML table (`path`: where it comes from, a relative .toml `base`
+    is taken from its folder; `text`: the TOML). ConfigError naming the key."""
     unknown = sorted(set(data) - set(SPEC_KEYS))
     if unknown:
         raise ConfigError(f"unknown key(s) {unknown}; known keys: {list(SPEC_KEYS)}")
-    name = validate_run_id(path.stem)
     base = data.get("base", "default")
     if not isinstance(base, str):
-        raise ConfigError(f"base: expected a scenario name, got {base!r}")
-    validate_scenario_name(base)
-    if not (workspace().scenarios_dir / f"{base}.toml").is_file():
-        raise ConfigError(f"base = {base!r}: no such scenario in {workspace().scenarios_dir}")
+        raise ConfigError(f"base: expected a scenario name or a .toml path, got {base!r}")
+    if base.endswith(".toml"):
+        base = str((path.parent / base).resolve())
+        if not Path(base).is_file():
+            raise ConfigError(f"base = {data['base']!r}: no such scenario file ({base})")
+    else:
+        validate_scenario_name(base)
+        if not (workspace().scenarios_dir / f"{base}.toml").is_file():
+            raise ConfigError(f"base = {base!r}: no such scenario in {workspace().scenarios_dir}")
     runs = data.get("runs")
     if isinstance(runs, bool) or not isinstance(runs, int) or not 1 <= runs <= MAX_RUNS:
         raise ConfigError(f"runs = {runs!r}: must be an integer in [1, {MAX_RUNS:,}]")
@@ -309,11 +335,11 @@ def _load(path: Path) -> CampaignSpec:
     target = data.get("target", "score")
     from pipeline.stages import DAG  # the stage names (the campaign sits above the stages)
 
-    if target not in DAG.order or target in ("sweep", "ingest"):
+    if target not in DAG.order or target == "ingest":
         raise ConfigError(f"target = {target!r}: must be a stage of a run: "
-                          f"{[s for s in DAG.order if s not in ('sweep', 'ingest')]}")
+                          f"{[s for s in DAG.order if s != 'ingest']}")
     flags = {}
-    for k in ("recordings", "catalogue_errors", "jitter"):
+    for k in ("recordings", "keep_runs", "catalogue_errors", "jitter"):
         v = data.get(k, False)
         if not isinstance(v, bool):
             raise ConfigError(f"{k}: expected true/false, got {v!r}")
@@ -342,27 +368,61 @@ def _load(path: Path) -> CampaignSpec:
     for d in dispersions:
         if built_in.get(d.key):
             raise ConfigError(f"dispersions.{d.key!r}: also set by a built-in dispersion")
-    if mounting > 0:
-        sensor = overrides.get("detection", {}).get("sensor") or _base_sensor(base)
-        if sensor != "physical":
-            raise ConfigError(f"mounting_sigma_deg = {mounting:g}: the camera mounting needs "
-                              f"detection.sensor = \"physical\" (the base and overrides give "
-                              f"{sensor!r}: the paper's camera is the body frame)")
+    nominal = _check_base(base, overrides, {d.key for d in dispersions}, flags, mounting)
+    if mounting > 0 and "assumed_camera_mounting_deg" not in overrides.get("estimation", {}):
+        overrides = _deep_copy(overrides)  # the navigator assumes the nominal mounting
+        overrides.setdefault("estimation", {})["assumed_camera_mounting_deg"] = list(nominal)
     grid_size = math.prod(len(d.values) for d in dispersions if d.kind == "grid")
     if grid_size > runs:
         raise ConfigError(f"dispersions: the sweep grid has {grid_size} combinations, more than "
                           f"runs = {runs}: some would never run")
+    if any(d.key == "seed" for d in dispersions) and runs > grid_size:
+        raise ConfigError(f"runs = {runs}: with the seeds as a grid, at most its {grid_size} "
+                          "combinations (a repeated seed repeats a run's draws)")
     return CampaignSpec(name=name, path=path.resolve(), base=base, runs=runs, seed=seed,
                         target=target, recordings=flags["recordings"],
+                        keep_runs=flags["keep_runs"],
                         catalogue_errors=flags["catalogue_errors"], jitter=flags["jitter"],
-                        mounting_sigma_deg=mounting, overrides=overrides,
-                        dispersions=dispersions)
+                        mounting_sigma_deg=mounting, nominal_mounting_deg=nominal,
+                        overrides=overrides, dispersions=dispersions, text=text)
 
 
-def _base_sensor(base: str) -> str:
+def _check_base(base: str, overrides: dict[str, Any], dispersed: set[str],
+                flags: dict[str, bool], mounting_deg: float) -> tuple[float, ...]:
+    """The base with the overrides is a valid config, and a built-in dispersion changes the runs:
+    a seed or angle the config ignores would be drawn, recorded and silently not applied (the
+    catalogue errors and the mounting need the physical sensor, the catalogue errors a non-zero
+    sigma, the jitter seed a non-zero rate). Returns the base's camera mounting (deg)."""
     from pipeline.config import load_config
 
-    return load_config(base).detection.sensor
+    try:
+        cfg = load_config(base, "campaign-base", overrides)
+    except ConfigError as exc:
+        raise ConfigError(f"base and overrides: {exc}") from None
+    d, physical = cfg.detection, cfg.detection.sensor == "physical"
+    if mounting_deg > 0 and not physical:
+        raise ConfigError(f"mounting_sigma_deg = {mounting_deg:g}: the camera mounting needs "
+                          f"detection.sensor = \"physical\" (the base and overrides give "
+                          f"{d.sensor!r}: the paper's camera is the body frame)")
+    sigmas = ("catalogue_sigma_horizontal_m", "catalogue_sigma_height_m",
+              "catalogue_sigma_diameter_share")
+    if flags["catalogue_errors"] and not (physical and (
+            any(getattr(d, k) > 0 for k in sigmas)
+            or any(f"detection.{k}" in dispersed for k in sigmas))):
+        raise ConfigError("catalogue_errors = true: the catalogue's errors (detection.world_seed) "
+                          "need detection.sensor = \"physical\" and a catalogue sigma > 0 "
+                          f"(detection.{sigmas[0]}, ...); the base and overrides give sensor "
+                          f"{d.sensor!r}, sigmas {[getattr(d, k) for k in sigmas]}: the draw "
+                          "would change nothing")
+    rate = "trajectory.jitter_rate_sigma_rad_s"
+    if flags["jitter"] and cfg.trajectory.jitter_rate_sigma_rad_s == 0 and rate not in dispersed:
+        raise ConfigError(f"jitter = true: the pointing jitter's seed needs {rate} > 0 (the base "
+                          "and overrides give 0: the draw would change nothing)")
+    if mounting_deg > 0 and cfg.identification.mode != "simulated":
+        raise ConfigError(f"mounting_sigma_deg = {mounting_deg:g}: a mounting the navigator does "
+                          "not know needs identification.mode = \"simulated\" (the base and "
+                          f"overrides give {cfg.identification.mode!r})")
+    return tuple(float(x) for x in d.camera_mounting_deg)
 
 
 def _leaf_keys(d: dict[str, Any], prefix: str = "") -> list[str]:
@@ -407,8 +467,6 @@ def _toml_value(v: Any) -> str:
         return repr(v)
     if isinstance(v, str):
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if v is None:
-        return '"none"'
     if isinstance(v, list | tuple):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     if isinstance(v, dict):
@@ -420,9 +478,9 @@ def _toml_key(k: str) -> str:
     return k if k.replace("_", "").replace("-", "").isalnum() else _toml_value(k)
 
 
-def scenario_toml(base: str, overrides: dict[str, Any], header: str = "") -> str:
-    """A scenario file: `extends = base` and the overrides (round-trip checked)."""
-    lines = [f"# {line}" for line in header.splitlines()] + [f"extends = {_toml_value(base)}"]
+def toml_text(data: dict[str, Any]) -> str:
+    """Nested tables of scalars and lists as TOML (round-trip checked)."""
+    lines: list[str] = []
 
     def section(d: dict[str, Any], name: str) -> None:
         scalars = {k: v for k, v in d.items() if not isinstance(v, dict)}
@@ -433,12 +491,17 @@ def scenario_toml(base: str, overrides: dict[str, Any], header: str = "") -> str
         for k, v in tables.items():
             section(v, f"{name}.{_toml_key(k)}" if name else _toml_key(k))
 
-    section(overrides, "")
+    section(data, "")
     text = "\n".join(lines) + "\n"
-    back = tomllib.loads(text)
-    if back != {"extends": base, **_jsonish(overrides)}:
-        raise ConfigError(f"internal: the run's scenario does not round-trip: {text}")
+    if tomllib.loads(text) != _jsonish(data):
+        raise ConfigError(f"internal: not a TOML round trip: {text}")
     return text
+
+
+def scenario_toml(base: str, overrides: dict[str, Any], header: str = "") -> str:
+    """A scenario file: `extends = base` and the overrides."""
+    return "".join(f"# {line}\n" for line in header.splitlines()) + toml_text(
+        {"extends": base, **overrides})
 
 
 def _jsonish(d: Any) -> Any:
@@ -446,4 +509,4 @@ def _jsonish(d: Any) -> Any:
         return {k: _jsonish(v) for k, v in d.items()}
     if isinstance(d, list | tuple):
         return [_jsonish(v) for v in d]
-    return "none" if d is None else d
+    return d

@@ -1,8 +1,8 @@
 """The one executor: runs a plan of stage invocations on a run store, skipping what is up to date.
 
 Per stage: the cache key (its own config and code, its upstream keys), a freshness check against
-what the committed entry promises, a transaction whose outputs commit together or not at all. `run`,
-`sweep` and campaigns are all plans for it; fan-out work inside a stage goes to the runner.
+what the committed entry promises, a transaction whose outputs commit together or not at all. `run`
+and every run of a campaign (`pipeline.campaign`, the sweep included) are plans for it.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ from pipeline.config import RunConfig, config_hash, to_dict
 from pipeline.engine.dag import Dag
 from pipeline.engine.fingerprint import code_hash
 from pipeline.engine.progress import console, out
-from pipeline.engine.runners import InProcessRunner, Runner
 from pipeline.engine.stage import StageContext
 from pipeline.errors import StageInputError
 from pipeline.io.store import RunStore, sweep_dead_temporaries
@@ -32,11 +31,10 @@ class Invocation:
 
 
 class Executor:
-    """Runs plans of invocations over the stages of `dag`, fan-out on `runner`."""
+    """Runs plans of invocations over the stages of `dag`."""
 
-    def __init__(self, dag: Dag, runner: Runner | None = None):
+    def __init__(self, dag: Dag):
         self.dag = dag
-        self.runner: Runner = runner or InProcessRunner()
 
     def key(self, stage: str, cfg: RunConfig, _memo: dict[str, str] | None = None) -> str:
         """Cache key: the stage's own config and code hashes and its upstream stages' keys."""
@@ -100,7 +98,7 @@ class Executor:
         t0 = time.perf_counter()
         console.print(f"[bold]{s.name}[/bold]: running (run {store.run_id})")
         try:
-            ctx = StageContext(cfg, store, tx, self.runner, paths)
+            ctx = StageContext(cfg, store, tx, paths)
             result = s.run(ctx)
             if s.verify is not None:
                 s.verify(ctx)

@@ -23,9 +23,14 @@ Advance = Callable[..., None]
 
 @contextmanager
 def progress_bar(description: str, total: int) -> Iterator[Advance]:
-    """A rich progress bar on stderr (hidden when stderr is not a terminal); yields `advance(n)`."""
+    """A rich progress bar on stderr (hidden when stderr is not a terminal); yields
+    `advance(n, description=None)` (a new description replaces the bar's)."""
     with Progress(TextColumn("  {task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=True,
                   disable=not console.is_terminal) as progress:
         task = progress.add_task(description, total=total)
-        yield lambda n=1: progress.advance(task, n)
+
+        def advance(n: int = 1, description: str | None = None) -> None:
+            progress.update(task, advance=n, description=description)
+
+        yield advance

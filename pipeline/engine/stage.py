@@ -17,7 +17,6 @@ from typing import TYPE_CHECKING, Any
 from pipeline.config import RunConfig, config_hash
 
 if TYPE_CHECKING:
-    from pipeline.engine.runners import Runner
     from pipeline.io.store import RunStore, StageTransaction
 
 
@@ -31,12 +30,11 @@ class StageResult:
 
 @dataclass
 class StageContext:
-    """What a running stage gets: its config, its committed inputs, where to write, a runner."""
+    """What a running stage gets: its config, its committed inputs, where to write."""
 
     cfg: RunConfig
     store: RunStore
     tx: StageTransaction
-    runner: Runner
     inputs: dict[str, Path]  # input artifact name -> committed path
 
     def input(self, name: str) -> Path:

@@ -923,10 +923,27 @@ def recorded_catalogue_db(catalogue_json: Path) -> Path:
     return db
 
 
+_SHARED: dict[str, Catalogue] = {}  # catalogue key -> arrays this process was handed
+
+
+def share_catalogue(craters: Catalogue) -> None:
+    """Hand this process a loaded catalogue (a campaign worker's, from Ray's object store): the
+    runs' stages then take it instead of reading the database again, when the database still
+    holds the same catalogue (its key)."""
+    _SHARED.clear()
+    _SHARED[str(craters.meta["key"])] = craters
+
+
 def load_recorded_catalogue(catalogue_json: Path) -> Catalogue:
-    """The catalogue the run's ingest stage recorded; StageInputError if the database holds
-    another one now (a concurrent `just ingest` replaced it)."""
+    """The catalogue the run's ingest stage recorded (the shared one when this process was handed
+    it); StageInputError if the database holds another one now (a concurrent `just ingest`
+    replaced it)."""
     facts = recorded_facts(catalogue_json)
+    shared = _SHARED.get(str(facts["key"]))
+    if shared is not None:
+        meta = read_meta(Path(facts["db_path"]))
+        if meta is not None and meta.get("key") == facts["key"]:
+            return shared
     craters = load_catalogue(Path(facts["db_path"]))
     if craters.meta.get("key") != facts["key"]:
         raise StageInputError(f"{facts['db_path']}: holds another catalogue than the run's "

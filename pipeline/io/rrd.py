@@ -5,10 +5,12 @@ forever in 3 of 5 trials (and in 2 of 2 here under RLIMIT_FSIZE); the in-memory 
 about the recording's size in RAM (< 25 MiB for the largest recording of the default run). The
 layout goes in as the default blueprint (a Blueprint store in the same file), as `save` does.
 
-`CRATER_NAV_RECORDINGS=off` in the environment switches recordings off (what a campaign's runs
-do by default): every stream is a disabled one (its log calls are no-ops) and each `.rrd` is
-written empty, so a stage still commits the outputs it declares. Such a run folder is scratch: a
-campaign gives the command that reruns one of its runs with its recordings.
+`CRATER_NAV_VISUALS=off` in the environment switches a run's visual outputs off (what a
+campaign's runs do by default): its recordings here, its report's figures in `viz.report`. Every
+stream is a null one (its calls do nothing, and rerun-sdk is not asked:
+a disabled stream of its own warns on stderr) and each `.rrd` is written empty, so a stage still
+commits the outputs it declares. A campaign gives the command that reruns one of its runs with
+its recordings.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import rerun as rr
 
@@ -29,10 +31,9 @@ def recording_file(application_id: str, recording_id: str, path: Path,
                    blueprint: Any | None = None) -> Iterator[rr.RecordingStream]:
     """A recording stream whose bytes are written to `path` (atomically) when the block ends
     without error; OSError (ENOSPC, EFBIG) propagates from the write. With recordings off
-    (`recordings_enabled()`), a disabled stream and an empty file."""
-    if not recordings_enabled():
-        off = rr.RecordingStream(application_id, recording_id=recording_id, default_enabled=False)
-        yield off
+    (`visuals_enabled()`), a null stream and an empty file."""
+    if not visuals_enabled():
+        yield cast(rr.RecordingStream, _Off())
         atomic_write_bytes(Path(path), b"")
         return
     rec = rr.RecordingStream(application_id, recording_id=recording_id)
@@ -53,9 +54,17 @@ def recording_file(application_id: str, recording_id: str, path: Path,
             atomic_write_bytes(Path(path), data)
 
 
-RECORDINGS_ENV = "CRATER_NAV_RECORDINGS"
+VISUALS_ENV = "CRATER_NAV_VISUALS"
 
 
-def recordings_enabled() -> bool:
-    """Recordings are written unless the environment says `CRATER_NAV_RECORDINGS=off`."""
-    return os.environ.get(RECORDINGS_ENV, "on").strip().lower() not in ("off", "0", "false", "no")
+class _Off:
+    """A recording stream with recordings off: every method call does nothing."""
+
+    def __getattr__(self, name: str) -> Any:
+        return lambda *args, **kwargs: None
+
+
+def visuals_enabled() -> bool:
+    """A run's recordings and figures are made unless the environment says
+    `CRATER_NAV_VISUALS=off`."""
+    return os.environ.get(VISUALS_ENV, "on").strip().lower() not in ("off", "0", "false", "no")

@@ -38,6 +38,7 @@ from pipeline.io.workspace import Workspace, workspace
 
 DEFAULT_DB = "catalogue/craters.duckdb"
 CATALOGUE_ALIAS = "craters"
+CAMPAIGN_ALIAS = "campaign"  # `--campaign NAME`: runs/NAME/campaign.duckdb, tables campaign.<t>
 FORMATS = ("table", "csv", "markdown")
 
 READ_ONLY_PRAGMAS = frozenset({
@@ -77,28 +78,33 @@ class Session:
     catalogue: Path
     run_id: str | None = None
     run_tables: dict[str, Path] = field(default_factory=dict)
+    campaign: str | None = None
 
     def close(self) -> None:
         self.con.close()
 
 
-def check_run(run_id: str, runs_dir: Path) -> Path:
-    """The folder of run `run_id` (a plain name with a config.json), else SqlSessionError."""
+def check_run(run_id: str, runs_dir: Path, marker: str = "config.json", what: str = "run"
+              ) -> Path:
+    """The folder of run `run_id` (a plain name with a config.json; a campaign's: with its
+    campaign.duckdb), else SqlSessionError."""
     shown = repr(run_id if len(run_id) <= 40 else run_id[:40] + "...")
     try:
         validate_run_id(run_id)
     except ConfigError:
         msg = "1-100 letters, digits, '.', '_' and '-', starting with a letter or digit"
-        raise SqlSessionError(f"--run {shown}: not a run name ({msg})") from None
+        raise SqlSessionError(f"--{what} {shown}: not a {what} name ({msg})") from None
     run_dir = runs_dir / run_id
     if not run_dir.is_dir():
-        runs = sorted(q.parent.name for q in runs_dir.glob("*/config.json"))
-        known = f"runs: {', '.join(runs[:10])}{', ...' if len(runs) > 10 else ''}" if runs \
-            else "there are no runs yet; `just run` makes one"
-        raise SqlSessionError(f"--run {shown}: no folder {run_dir} ({known})")
-    if not (run_dir / "config.json").is_file():
-        raise SqlSessionError(f"--run {shown}: {run_dir} has no config.json (not a run folder, or "
-                              "none of its stages has run)")
+        runs = sorted(q.parent.name for q in runs_dir.glob(f"*/{marker}"))
+        maker = "`just run`" if what == "run" else "`just campaign`"
+        known = f"{what}s: {', '.join(runs[:10])}{', ...' if len(runs) > 10 else ''}" if runs \
+            else f"there are no {what}s yet; {maker} makes one"
+        raise SqlSessionError(f"--{what} {shown}: no folder {run_dir} ({known})")
+    if not (run_dir / marker).is_file():
+        raise SqlSessionError(f"--{what} {shown}: {run_dir} has no {marker} (not a {what} "
+                              f"folder, or none of its {'stages' if what == 'run' else 'runs'} "
+                              "has run)")
     return run_dir
 
 
@@ -129,12 +135,21 @@ def run_tables(run_id: str, runs_dir: Path) -> dict[str, Path]:
 
 
 def open_session(run: str | None = None, db: str | Path | None = None,
-                 ws: Workspace | None = None) -> Session:
-    """A read-only session on catalogue `db` (default: the one run `run` used, else
-    catalogue/craters.duckdb) with the run's tables; relative paths are under the project root."""
+                 ws: Workspace | None = None, campaign: str | None = None) -> Session:
+    """A read-only session on catalogue `db` (default: the one run `run`, else campaign
+    `campaign`, used; else catalogue/craters.duckdb) with the run's tables and the campaign's
+    database (attached read-only as `campaign`); relative paths are under the project root."""
     ws = ws or workspace()
+    campaign_db = None
     tables: dict[str, Path] = {}
     run_catalogue_db = None
+    if campaign is not None:
+        campaign_dir = check_run(campaign, ws.runs_dir, marker="campaign.duckdb",
+                                 what="campaign")
+        campaign_db = campaign_dir / "campaign.duckdb"
+        ingest = campaign_dir / "runs" / f"{campaign}-ingest"  # the campaign's shared catalogue
+        if (ingest / "config.json").is_file():
+            run_catalogue_db = run_catalogue(ingest, ws)
     if run is not None:
         run_dir = check_run(run, ws.runs_dir)
         run_catalogue_db = run_catalogue(run_dir, ws)
@@ -147,6 +162,8 @@ def open_session(run: str | None = None, db: str | Path | None = None,
     try:
         con.execute("SET temp_directory = ''")  # nothing spills to (or may be written in) a folder
         _attach(con, catalogue)
+        if campaign_db is not None:
+            _attach(con, campaign_db, CAMPAIGN_ALIAS)
         con.execute(f"USE {CATALOGUE_ALIAS}")
         for name, path in sorted(tables.items()):
             try:
@@ -159,12 +176,13 @@ def open_session(run: str | None = None, db: str | Path | None = None,
     except BaseException:
         con.close()
         raise
-    return Session(con, catalogue, run, tables)
+    return Session(con, catalogue, run, tables, campaign)
 
 
-def _attach(con: duckdb.DuckDBPyConnection, catalogue: Path) -> None:
+def _attach(con: duckdb.DuckDBPyConnection, catalogue: Path, alias: str = CATALOGUE_ALIAS
+            ) -> None:
     try:
-        con.execute(f"ATTACH {_literal(str(catalogue))} AS {CATALOGUE_ALIAS} (READ_ONLY)")
+        con.execute(f"ATTACH {_literal(str(catalogue))} AS {alias} (READ_ONLY)")
     except duckdb.Error as exc:
         text = _one_line(str(exc))
         if "Could not set lock" in text or "file handle conflict" in text:
@@ -314,19 +332,21 @@ def list_tables(session: Session) -> Result:
     rows = con.execute(
         "SELECT database_name, table_name, string_agg(column_name || ' ' || data_type, ', ' "
         "ORDER BY column_index) FROM duckdb_columns() WHERE schema_name = 'main' AND "
-        f"database_name IN ('temp', {_literal(CATALOGUE_ALIAS)}) GROUP BY "
+        f"database_name IN ('temp', {_literal(CATALOGUE_ALIAS)}, {_literal(CAMPAIGN_ALIAS)}) "
+        "GROUP BY "
         "database_name, table_name ORDER BY database_name = 'temp' DESC, table_name").fetchall()
     names, where, counts, columns = [], [], [], []
     for database, table, cols in rows:
         in_run = database == "temp"
-        if not in_run and table in session.run_tables:
-            name = f"{CATALOGUE_ALIAS}.{table}"
+        if database == CAMPAIGN_ALIAS or (not in_run and table in session.run_tables):
+            name = f"{database}.{table}"
         else:
             name = table
         (n,) = con.execute(f"SELECT count(*) FROM {_ident(database)}.main.{_ident(table)}"
                            ).fetchone()
         names.append(name)
-        where.append(f"run {session.run_id}" if in_run else "catalogue")
+        where.append(f"run {session.run_id}" if in_run else f"campaign {session.campaign}"
+                     if database == CAMPAIGN_ALIAS else "catalogue")
         counts.append(n)
         columns.append(cols)
     table = pa.table({"table": pa.array(names, pa.string()), "in": pa.array(where, pa.string()),
@@ -446,7 +466,8 @@ def _is_numeric(t: pa.DataType) -> bool:
 
 def run_query(query: str | None, run: str | None = None, db: str | None = None,
               fmt: str = "table", max_rows: int = 40, timeout_s: float = 60.0,
-              out: TextIO | None = None, terminal: bool | None = None) -> None:
+              out: TextIO | None = None, terminal: bool | None = None,
+              campaign: str | None = None) -> None:
     """`just sql`: run `query` (or, without one, list the tables) and print the result."""
     if fmt not in FORMATS:
         raise SqlError(f"--format {fmt!r}: use one of {', '.join(FORMATS)}")
@@ -458,10 +479,11 @@ def run_query(query: str | None, run: str | None = None, db: str | None = None,
         check_query(query)  # refuse before opening anything
     out = sys.stdout if out is None else out
     terminal = out.isatty() if terminal is None else terminal
-    session = open_session(run, db)
+    session = open_session(run, db, campaign=campaign)
     try:
         if query is None:
-            title = f"catalogue {session.catalogue}" + (f", run {run}" if run else "")
+            title = (f"catalogue {session.catalogue}" + (f", run {run}" if run else "")
+                     + (f", campaign {campaign}" if campaign else ""))
             render(list_tables(session), fmt, out, terminal, max_rows=1_000_000, title=title)
         else:
             render(execute(session, query, timeout_s), fmt, out, terminal, max_rows)

@@ -1,5 +1,5 @@
 """Detection operations: per frame, the craters in view, visible (Eq. 9), identified and used, with
-their measurements (paper Sec. 3.4-3.5), as tables; and the exact reselection under another cap."""
+their measurements (paper Sec. 3.4-3.5), as tables."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import polars as pl
 
 from pipeline.config import DetectionConfig
-from pipeline.core import camera, frames, identification, illumination, rotations, sensor
+from pipeline.core import camera, frames, illumination, rotations, sensor
 from pipeline.core.constants import MOON_RADIUS_M
 from pipeline.core.detection import (
     PHYSICAL_COLUMNS,
@@ -151,22 +151,3 @@ def sun_columns(model: DetectionModel, trajectory: pl.DataFrame, sun_mcmf_m: np.
     return {**xyz_columns("sun_mci", "", sun_mci), "sun_elevation_deg": np.degrees(elevation),
             "gsd_m": illumination.ground_sample_distance_m(trajectory["altitude_m"].to_numpy(),
                                                             f_px)}
-
-
-def reselect(detections: pl.DataFrame, cap: int | None, strategy: str, seed: int,
-             image_size_px: int) -> np.ndarray:
-    """The `used` mask the stage would give with another cap or strategy (same seed): the
-    selection's own per-frame stream makes this exact, so a sweep reuses one detection pass."""
-    frame = detections["frame"].to_numpy()
-    starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
-    ends = np.r_[starts[1:], frame.size]
-    identified = detections["identified"].to_numpy()
-    diam = detections["diam_km"].to_numpy()
-    rho = detections["rho_meas_m"].to_numpy()
-    pixel = np.stack([detections["pixel_u"].to_numpy(), detections["pixel_v"].to_numpy()], 1)
-    used = np.zeros(frame.size, bool)
-    for a, b in zip(starts, ends, strict=True):
-        rng = frame_rngs(seed, int(frame[a]))["select"]
-        used[a:b] = identification.select_used(rng, identified[a:b], cap, strategy, diam[a:b],
-                                               rho[a:b], pixel[a:b], image_size_px)
-    return used

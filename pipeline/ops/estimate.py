@@ -38,10 +38,14 @@ class UsedCraters:
 
     @classmethod
     def from_tables(cls, detections: pl.DataFrame, frames_table: pl.DataFrame,
-                    used: np.ndarray | None = None) -> UsedCraters:
-        """From the detection stage's tables; `used` overrides the `used` column (the sweep)."""
-        mask = detections["used"].to_numpy() if used is None else used
-        d = detections.filter(pl.Series(mask))
+                    misalignment: np.ndarray | None = None) -> UsedCraters:
+        """From the detection stage's tables (the `used` rows); `misalignment` (3, 3) rotates the
+        measured body bearings into the body frame of a navigator with another camera mounting
+        (`RunConfig.navigator_misalignment`)."""
+        d = detections.filter(pl.col("used"))
+        u_meas = xyz(d, "u_meas_body", "")
+        if misalignment is not None:
+            u_meas = u_meas @ misalignment.T
         frame = frames_table["frame"].to_numpy()
         start = np.searchsorted(d["frame"].to_numpy(), frame, side="left")
         def column(name: str) -> np.ndarray:
@@ -49,7 +53,7 @@ class UsedCraters:
 
         return cls(frame, frames_table["t_s"].to_numpy(), np.r_[start, d.height],
                    d["det_index"].to_numpy(), d["matched_id"].to_numpy(),
-                   xyz(d, "c_mci", "_m"), xyz(d, "u_meas_body", ""), d["rho_meas_m"].to_numpy(),
+                   xyz(d, "c_mci", "_m"), u_meas, d["rho_meas_m"].to_numpy(),
                    column("semi_major_px"), column("rho_size_m"))
 
     def sigmas(self, a: int, b: int, scalar: tuple[float, float], noise: SensorNoise | None,

@@ -16,13 +16,11 @@ from pipeline.stages import (
     navigate,
     render,
     score,
-    sweep,
     trajectory,
 )
 
 STAGES = (ingest.STAGE, trajectory.STAGE, imu.STAGE, render.STAGE, detect.STAGE, estimate.STAGE,
-          navigate.STAGE, score.STAGE, sweep.STAGE)
+          navigate.STAGE, score.STAGE)
 DAG = Dag(STAGES)
 
 RUN_TARGET = "score"  # `just run` brings this stage and everything it needs up to date
-SWEEP_TARGET = "sweep"

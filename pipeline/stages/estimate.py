@@ -35,7 +35,7 @@ def run(ctx: StageContext) -> StageResult:
     cfg, tx = ctx.cfg, ctx.tx
     detections = pl.read_parquet(ctx.input("detections.parquet"))
     frames_table = pl.read_parquet(ctx.input("frames.parquet"))
-    craters = UsedCraters.from_tables(detections, frames_table)
+    craters = UsedCraters.from_tables(detections, frames_table, cfg.navigator_misalignment())
     total = craters.frame.size * len(cfg.estimation.methods)
     with progress_bar("estimating poses", total) as advance:
         estimates = estimate_all(craters, options(cfg), cfg.seed, advance)
@@ -66,7 +66,7 @@ STAGE = Stage(
            "detection.fov_deg", "detection.fov_convention", "detection.image_size_px",
            "detection.range_source", "detection.catalogue_sigma_horizontal_m",
            "detection.catalogue_sigma_height_m", "detection.catalogue_sigma_diameter_share",
-           "seed"),
+           "detection.camera_mounting_deg", "seed"),
     inputs=("detections.parquet", "frames.parquet", "trajectory.parquet"),
     outputs=("estimates.parquet", "estimation.rrd"),
     code=("pipeline.stages.estimate",),

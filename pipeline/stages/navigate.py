@@ -52,7 +52,8 @@ def run(ctx: StageContext) -> StageResult:
     cfg, tx = ctx.cfg, ctx.tx
     trajectory = pl.read_parquet(ctx.input("trajectory.parquet"))
     craters = UsedCraters.from_tables(pl.read_parquet(ctx.input("detections.parquet")),
-                                      pl.read_parquet(ctx.input("frames.parquet")))
+                                      pl.read_parquet(ctx.input("frames.parquet")),
+                                      cfg.navigator_misalignment())
     frame_of_time = {float(t): int(f) for t, f in
                      zip(trajectory["t_s"].to_list(), trajectory["frame"].to_list(), strict=True)}
     table, facts = navigate(

@@ -7,6 +7,7 @@ report.md with its figures, scoring.rrd and layout.rbl (the viewer's layout).
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import duckdb
@@ -56,6 +57,21 @@ def catalogue_lookup(db_path: Path) -> CraterLookup:
     return lookup
 
 
+def frame_scores(cfg: RunConfig, artifact: Callable[[str], Path]) -> pl.DataFrame:
+    """Each estimate's errors against truth, sigmas, NEES and the Cramér-Rao bound (one row per
+    method and frame), from a run's committed tables (`artifact(name)`: where each is)."""
+    trajectory = pl.read_parquet(artifact("trajectory.parquet"))
+    detections = pl.read_parquet(artifact("detections.parquet")).join(
+        trajectory.select("frame", "theta_m_rad"), on="frame")
+    estimates = pl.read_parquet(artifact("estimates.parquet"))
+    db = Path(json.loads(artifact("catalogue.json").read_text())["db_path"])
+    d = cfg.detection
+    with progress_bar("Cramér-Rao bound", trajectory.height) as advance:
+        return score_run(trajectory, detections, estimates, catalogue_lookup(db),
+                         d.sigma_bearing, d.sigma_range_m, advance,
+                         cfg.sensor_noise(navigator=False))
+
+
 def run(ctx: StageContext) -> StageResult:
     cfg, tx = ctx.cfg, ctx.tx
     trajectory = pl.read_parquet(ctx.input("trajectory.parquet"))
@@ -63,13 +79,7 @@ def run(ctx: StageContext) -> StageResult:
     frames_table = pl.read_parquet(ctx.input("frames.parquet"))
     detections = pl.read_parquet(ctx.input("detections.parquet")).join(
         trajectory.select("frame", "theta_m_rad"), on="frame")
-    estimates = pl.read_parquet(ctx.input("estimates.parquet"))
-    db = Path(json.loads(ctx.input("catalogue.json").read_text())["db_path"])
-    d = cfg.detection
-    with progress_bar("Cramér-Rao bound", trajectory.height) as advance:
-        scores = score_run(trajectory, detections, estimates, catalogue_lookup(db),
-                           d.sigma_bearing, d.sigma_range_m, advance,
-                           cfg.sensor_noise(navigator=False))
+    scores = frame_scores(cfg, ctx.input)
     wins = windows(cfg.scoring, t_impact)
     summary = summarize(scores, wins)
     by_used = report.by_craters_used(scores)

@@ -10,6 +10,7 @@ from `pipeline.vocab`. Every axis carries one unit.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,7 @@ import polars as pl
 from matplotlib.figure import Figure
 
 from pipeline.config import RunConfig
+from pipeline.io.rrd import visuals_enabled
 from pipeline.studies import Study, suslu2025
 from pipeline.vocab import (
     ATTITUDE,
@@ -307,18 +309,21 @@ def write_run_report(tx, cfg: RunConfig, run_id: str, trajectory: pl.DataFrame,
     when not given); `navigation` and `nav_summary` (the filter's table and
     `summarize_navigation`) add the navigation section; `identification` and `by_detections`
     (`summarize_identification`, `identification_by_detections`) the identification section;
-    `rendering` (the render stage's facts, recall and images tables) the rendering section."""
+    `rendering` (the render stage's facts, recall and images tables) the rendering section.
+    With visuals off (`pipeline.io.rrd.visuals_enabled`) no figure is drawn."""
     d = cfg.detection
     cap = "no limit" if d.max_craters is None else f"{d.max_craters} ({d.selection})"
     by_used = by_craters_used(scores) if by_used is None else by_used
-    fig_counts(frames_table, tx.output("fig4_craters.png"),
-               f"Visible craters and altitude ({run_id})", study)
-    fig_errors(scores, POSITION, tx.output("fig5_position_errors.png"),
-               f"Position errors, MCI axes ({run_id}, cap {cap})")
-    fig_errors(scores, ATTITUDE, tx.output("fig6_attitude_errors.png"),
-               f"Attitude errors, 3-2-1 Euler angles of R_true^T R_est ({run_id}, cap {cap})")
-    fig_craters_used(by_used, tx.output("fig_craters_used.png"),
-                     f"Errors by craters used ({run_id}, all frames)")
+    figures = visuals_enabled()
+    if figures:
+        fig_counts(frames_table, tx.output("fig4_craters.png"),
+                   f"Visible craters and altitude ({run_id})", study)
+        fig_errors(scores, POSITION, tx.output("fig5_position_errors.png"),
+                   f"Position errors, MCI axes ({run_id}, cap {cap})")
+        fig_errors(scores, ATTITUDE, tx.output("fig6_attitude_errors.png"),
+                   f"Attitude errors, 3-2-1 Euler angles of R_true^T R_est ({run_id}, cap {cap})")
+        fig_craters_used(by_used, tx.output("fig_craters_used.png"),
+                         f"Errors by craters used ({run_id}, all frames)")
     text = f"""# Run `{run_id}` (scenario `{cfg.name}`)
 
 Catalogue `{cfg.catalogue.source}`; field of view {d.fov_deg:g} deg ({d.fov_convention});
@@ -358,13 +363,18 @@ seconds before impact); here each bin of craters used stands alone. Cells: RMSE 
 
 {craters_used_table(by_used)}"""
     if navigation is not None and nav_summary is not None:
-        fig_navigation(navigation, tx.output("fig_navigation.png"),
-                       f"Navigation filter: position error and 3 sigma, MCI axes ({run_id})")
+        if figures:
+            fig_navigation(navigation, tx.output("fig_navigation.png"),
+                           f"Navigation filter: position error and 3 sigma, MCI axes ({run_id})")
         text += navigation_section(cfg, nav_summary, summary)
     if identification is not None:
         text += identification_section(cfg, identification, by_detections)
     if rendering is not None:
         text += rendering_section(*rendering)
+    if not figures:  # a campaign's run: the tables alone
+        text = re.sub(r"^!\[[^\]]*\]\([^)]*\.png\)\n\n?", "", text, flags=re.MULTILINE)
+        text = text.replace("\n\n", "\n\n_Figures off (`CRATER_NAV_VISUALS=off`: a campaign's "
+                            "run); `just run` on its scenario draws them._\n\n", 1)
     tx.output("report.md").write_text(text)
 
 

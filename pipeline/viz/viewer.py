@@ -56,11 +56,15 @@ def vulkan_available() -> bool:
 
 def run_recordings(run: str, root: Path | None = None) -> tuple[Path, list[Path], Path | None]:
     """The run folder, its committed recordings and the catalogue recording to attach (the one
-    beside the database the run's ingest stage used; None when there is none)."""
+    beside the database the run's ingest stage used; None when there is none). A campaign's
+    folder (no stages of its own): its recordings (campaign.rrd, a sweep's sweep.rrd)."""
     from pipeline.io.catalogue_db import recorded_catalogue_db, recorded_facts
     from pipeline.io.store import RunStore
 
     store = RunStore(run, root)
+    if not store.manifest_path.is_file() and (store.run_dir / "campaign.parquet").is_file():
+        return store.run_dir, sorted(p for p in store.run_dir.glob("*.rrd")
+                                     if p.stat().st_size), None
     facts_path = store.artifacts().get("catalogue.json")
     catalogue = None
     if facts_path is not None:

@@ -382,17 +382,6 @@ def test_detections_do_not_depend_on_frame_order(runs):
     assert_frame_equal(frames_table.reverse(), run.frames)
 
 
-@pytest.mark.parametrize(("source", "target", "cap", "strategy"), [
-    ("base", "spread25", 25, "spread"), ("spread25", "base", 10, "random")])
-def test_reselect_reproduces_another_runs_used_column(runs, source, target, cap, strategy):
-    src, dst = runs(source).detections, runs(target).detections
-    keep = ["frame", "crater_id", "identified", "rho_meas_m", "pixel_u", "matched_id"]
-    assert_frame_equal(src.select(keep), dst.select(keep))
-    used = detect.reselect(src, cap, strategy, seed=1, image_size_px=1024)
-    np.testing.assert_array_equal(used, dst["used"].to_numpy())
-    assert not np.array_equal(used, src["used"].to_numpy())
-
-
 def test_full_angle_sees_a_subset_of_corner_half_angle(runs):
     corner, full = runs("base"), runs("full")
     keys = ["frame", "crater_id"]
