@@ -17,7 +17,7 @@ from pipeline.campaign.execute import campaign_paths, run_campaign
 from pipeline.campaign.results import TIMING_COLUMNS, read_table
 from pipeline.campaign.spec import load_spec
 from pipeline.core.navigation.imu import GRADES
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, PipelineError
 
 DISPERSIONS = """
 [dispersions]
@@ -491,3 +491,13 @@ def test_a_dead_worker_is_retried_then_recorded_crashed(workdir: Path, catalogue
     crashed = table.filter(pl.col("run") == 0)
     assert crashed["status"].to_list() == ["crashed"] and crashed["error"][0]
     assert "crashed" in (campaign_paths(spec).root / "report.md").read_text()
+
+
+def test_an_ordinary_run_folder_is_not_taken_for_a_campaign(spec_file: str):
+    spec = load_spec(spec_file)
+    root = campaign_paths(spec).root
+    root.mkdir(parents=True)
+    (root / "manifest.json").write_text("{}")
+    with pytest.raises(PipelineError, match="ordinary run") as err:
+        run_campaign(spec, local=True)
+    assert "\n" not in str(err.value) and not (root / "results").exists()

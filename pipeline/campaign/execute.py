@@ -124,7 +124,7 @@ def collect(cfg: RunConfig, store: RunStore) -> dict[str, pl.DataFrame]:
     method's statistics), `navigation` (per filter record: errors, sigmas, NEES) and `scores`
     (per method and frame: errors, sigmas, NEES, the Cramér-Rao bound, the true altitude; scored
     here when the run stopped at `estimate`). Empty where the run has no such table."""
-    from pipeline.stages.score import frame_scores
+    from pipeline.stages.score import frame_scores, read_scoring_inputs
 
     arts = store.artifacts()
     out = {part: pl.DataFrame() for part in PARTS}
@@ -133,7 +133,8 @@ def collect(cfg: RunConfig, store: RunStore) -> dict[str, pl.DataFrame]:
     if "scores.parquet" in arts:
         scores = pl.read_parquet(arts["scores.parquet"])
     elif "estimates.parquet" in arts:
-        scores = frame_scores(cfg, lambda name: arts[name])
+        trajectory_table, detections = read_scoring_inputs(lambda name: arts[name])
+        scores = frame_scores(cfg, trajectory_table, detections, lambda name: arts[name])
     else:
         scores = pl.DataFrame()
     if scores.height and trajectory is not None:
@@ -359,6 +360,10 @@ def run_campaign(spec: CampaignSpec, *, address: str | None = None, workers: int
     from pipeline.stages import DAG
 
     paths = campaign_paths(spec)
+    if (paths.root / "manifest.json").is_file():
+        raise PipelineError(f"{paths.root}: the folder of an ordinary run (manifest.json), not a "
+                            "campaign's (a sweep before sweeps were campaigns?); remove it or "
+                            "give the campaign another name")
     t0 = time.perf_counter()
     with campaign_lock(paths):
         atomic_write_text(paths.root / "spec.toml", spec.text)

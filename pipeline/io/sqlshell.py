@@ -148,7 +148,7 @@ def open_session(run: str | None = None, db: str | Path | None = None,
                                  what="campaign")
         campaign_db = campaign_dir / "campaign.duckdb"
         ingest = campaign_dir / "runs" / f"{campaign}-ingest"  # the campaign's shared catalogue
-        if (ingest / "config.json").is_file():
+        if db is None and run is None and (ingest / "config.json").is_file():
             run_catalogue_db = run_catalogue(ingest, ws)
     if run is not None:
         run_dir = check_run(run, ws.runs_dir)

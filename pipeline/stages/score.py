@@ -57,12 +57,19 @@ def catalogue_lookup(db_path: Path) -> CraterLookup:
     return lookup
 
 
-def frame_scores(cfg: RunConfig, artifact: Callable[[str], Path]) -> pl.DataFrame:
-    """Each estimate's errors against truth, sigmas, NEES and the Cramér-Rao bound (one row per
-    method and frame), from a run's committed tables (`artifact(name)`: where each is)."""
+def read_scoring_inputs(artifact: Callable[[str], Path]) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """A run's trajectory and its detections (with the Moon's rotation angle of their frame),
+    from its committed tables (`artifact(name)`: where each is)."""
     trajectory = pl.read_parquet(artifact("trajectory.parquet"))
-    detections = pl.read_parquet(artifact("detections.parquet")).join(
+    return trajectory, pl.read_parquet(artifact("detections.parquet")).join(
         trajectory.select("frame", "theta_m_rad"), on="frame")
+
+
+def frame_scores(cfg: RunConfig, trajectory: pl.DataFrame, detections: pl.DataFrame,
+                 artifact: Callable[[str], Path]) -> pl.DataFrame:
+    """Each estimate's errors against truth, sigmas, NEES and the Cramér-Rao bound (one row per
+    method and frame), from a run's trajectory and detections (`read_scoring_inputs`) and its
+    committed estimates and catalogue (`artifact(name)`: where each is)."""
     estimates = pl.read_parquet(artifact("estimates.parquet"))
     db = Path(json.loads(artifact("catalogue.json").read_text())["db_path"])
     d = cfg.detection
@@ -74,12 +81,10 @@ def frame_scores(cfg: RunConfig, artifact: Callable[[str], Path]) -> pl.DataFram
 
 def run(ctx: StageContext) -> StageResult:
     cfg, tx = ctx.cfg, ctx.tx
-    trajectory = pl.read_parquet(ctx.input("trajectory.parquet"))
+    trajectory, detections = read_scoring_inputs(ctx.input)
     t_impact = json.loads(ctx.input("trajectory.json").read_text())["t_impact_s"]
     frames_table = pl.read_parquet(ctx.input("frames.parquet"))
-    detections = pl.read_parquet(ctx.input("detections.parquet")).join(
-        trajectory.select("frame", "theta_m_rad"), on="frame")
-    scores = frame_scores(cfg, ctx.input)
+    scores = frame_scores(cfg, trajectory, detections, ctx.input)
     wins = windows(cfg.scoring, t_impact)
     summary = summarize(scores, wins)
     by_used = report.by_craters_used(scores)
