@@ -123,9 +123,7 @@ def build_database(path: Path, collected: Collected) -> pl.DataFrame:
             con.unregister("_files")
         if not any(collected.files.values()):
             return pl.DataFrame()
-        env = con.sql(_envelope_sql(con)).pl()
-        con.register("_env", env.to_arrow())
-        env = _with_nees_bounds(env)
+        env = _with_nees_bounds(con.sql(_envelope_sql(con)).pl())
         con.register("_env", env.to_arrow())
         con.execute("CREATE TABLE envelopes AS SELECT * FROM _env")
         return env
