@@ -299,15 +299,6 @@ def log_envelopes(path: Path, name: str, env: pl.DataFrame) -> None:
                 rec.log(path_, rr.SeriesLines(names=label), static=True)
 
 
-def replace_file(target: Path, write: Any) -> None:
-    """`write(tmp)` a file beside `target`, then rename it over `target` (readers never see a
-    half-written file)."""
-    tmp = target.with_name(f".tmp-{os.getpid()}-{target.name}")
-    tmp.unlink(missing_ok=True)
-    write(tmp)
-    os.replace(tmp, target)
-
-
 OUTPUTS = ("campaign.parquet", "campaign.duckdb", "campaign.rrd", "envelope_time.png",
            "envelope_altitude.png", "nees.png", "report.md", "campaign.json")
 

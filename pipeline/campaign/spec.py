@@ -52,6 +52,7 @@ Every spec error is one line naming the file and the key.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import tomllib
@@ -154,7 +155,7 @@ class CampaignSpec:
 
     def overrides_for(self, index: int) -> dict[str, Any]:
         """The nested overrides of run `index`: the spec's fixed overrides, then its draws."""
-        over = _deep_copy(self.overrides)
+        over = copy.deepcopy(self.overrides)
         for key, value in self.draws(index).items():
             _set_dotted(over, key, value)
         return over
@@ -173,10 +174,6 @@ def _seed_of(root: int, index: int, key: str) -> int:
     ss = (np.random.SeedSequence(root, spawn_key=(index,)) if key == "seed"
           else np.random.SeedSequence(root, spawn_key=(index, _stream_key(key))))
     return int(ss.generate_state(1, np.uint64)[0] >> np.uint64(1))
-
-
-def _deep_copy(d: dict[str, Any]) -> dict[str, Any]:
-    return {k: _deep_copy(v) if isinstance(v, dict) else v for k, v in d.items()}
 
 
 def _set_dotted(d: dict[str, Any], key: str, value: Any) -> None:
@@ -370,7 +367,7 @@ def spec_from_data(data: dict[str, Any], name: str, path: Path, text: str) -> Ca
             raise ConfigError(f"dispersions.{d.key!r}: also set by a built-in dispersion")
     nominal = _check_base(base, overrides, {d.key for d in dispersions}, flags, mounting)
     if mounting > 0 and "assumed_camera_mounting_deg" not in overrides.get("estimation", {}):
-        overrides = _deep_copy(overrides)  # the navigator assumes the nominal mounting
+        overrides = copy.deepcopy(overrides)  # the navigator assumes the nominal mounting
         overrides.setdefault("estimation", {})["assumed_camera_mounting_deg"] = list(nominal)
     grid_size = math.prod(len(d.values) for d in dispersions if d.kind == "grid")
     if grid_size > runs:
