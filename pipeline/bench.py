@@ -29,8 +29,8 @@ from rich.console import Console
 from rich.table import Table
 
 from pipeline.config import load_config
-from pipeline.core import frames, tiling
-from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.math import frames, tiling
+from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.io.store import RunStore, now_iso
 from pipeline.io.workspace import workspace
 
@@ -111,7 +111,7 @@ def _square_footprint(rng: np.random.Generator, side_m: float) -> np.ndarray:
 
 
 def bench_query(scratch: Scratch) -> list[Result]:
-    from pipeline.core.synthetic import generate_catalogue
+    from pipeline.core.body.synthetic import generate_catalogue
 
     cfg = load_config("default").catalogue
     lat, lon, _ = generate_catalogue(np.random.default_rng(cfg.seed), cfg.synthetic_min_diam_km,
@@ -166,7 +166,7 @@ def bench_detect(scratch: Scratch) -> list[Result]:
 
 def _geometry(rng: np.random.Generator, n: int, sigma_b: float, sigma_r: float):
     """A nadir view from 100 km: n craters in a 45-degree cone, noisy measurements, truth."""
-    from pipeline.core import measurement
+    from pipeline.core.estimation import measurement
 
     r = np.array([MOON_RADIUS_M + 100e3, 0.0, 0.0])
     v = np.array([0.0, 1600.0, 0.0])
@@ -181,7 +181,7 @@ def _geometry(rng: np.random.Generator, n: int, sigma_b: float, sigma_r: float):
 
 
 def bench_estimators(scratch: Scratch) -> list[Result]:
-    from pipeline.core.estimators import RobustOptions, estimate_pose
+    from pipeline.core.estimation.estimators import RobustOptions, estimate_pose
 
     cfg = load_config("default")
     d, e = cfg.detection, cfg.estimation

@@ -244,7 +244,7 @@ def compare(
     import polars as pl
 
     from pipeline.config import validate_run_id
-    from pipeline.core import camera
+    from pipeline.core.sensors import camera
     from pipeline.io.workspace import workspace
     from pipeline.ops import compare as cmp
     from pipeline.viz import report

@@ -33,9 +33,11 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import camera, orbit, sensor, synthetic
-from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.navigation import imu
+from pipeline.core.body import synthetic
+from pipeline.core.dynamics import orbit
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.sensors import camera, imu
+from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.errors import ConfigError
 from pipeline.io.ephemeris import parse_epoch_utc
 from pipeline.io.workspace import workspace
@@ -565,7 +567,7 @@ class ImuConfig:
     the run's seed."""
 
     rate_hz: float  # sample rate of the increments
-    grade: str  # navigation | tactical | mems (pipeline.core.navigation.imu.GRADES)
+    grade: str  # navigation | tactical | mems (pipeline.core.sensors.imu.GRADES)
     record_rate_hz: float  # the decimated rate of the truth and navigation records
     gyro: GyroConfig
     accel: AccelConfig

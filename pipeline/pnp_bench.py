@@ -32,10 +32,11 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import estimators, frames, measurement
-from pipeline.core.camera import FieldOfView, intrinsics, ray_sphere_distance
-from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.rotations import dcm_from_q, q_from_dcm
+from pipeline.core.estimation import estimators, measurement
+from pipeline.core.math import frames
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.math.rotations import dcm_from_q, q_from_dcm
+from pipeline.core.sensors.camera import FieldOfView, intrinsics, ray_sphere_distance
 
 OPENCV_FLAGS = {"opencv_sqpnp": "SOLVEPNP_SQPNP", "opencv_iterative": "SOLVEPNP_ITERATIVE"}
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pipeline.core.estimators import METHODS  # the registered estimators (paper, joint)
-from pipeline.core.status import STATUSES, Status
+from pipeline.core.estimation.estimators import METHODS  # the registered estimators (paper, joint)
+from pipeline.core.scoring.status import STATUSES, Status
 
 __all__ = ["ATTITUDE", "ATTITUDE_MCI", "COUNT_COLORS", "CRLB_COLOR", "METHODS", "METHOD_COLORS",
            "POSITION", "QUANTITIES", "STATE_DIM", "STATUSES", "STATUS_CODES", "STATUS_COLORS",

@@ -16,7 +16,7 @@ from pipeline.campaign import execute
 from pipeline.campaign.execute import campaign_paths, run_campaign
 from pipeline.campaign.results import TIMING_COLUMNS, read_table
 from pipeline.campaign.spec import load_spec
-from pipeline.core.navigation.imu import GRADES
+from pipeline.core.sensors.imu import GRADES
 from pipeline.errors import ConfigError, PipelineError
 
 DISPERSIONS = """

@@ -11,8 +11,9 @@ import pytest
 pytest.importorskip("skyfield")
 pytest.importorskip("skyfield_data")
 
-from pipeline.core import frames, illumination
-from pipeline.core.constants import MOON_ROTATION_RATE_RAD_S
+from pipeline.core.body import illumination
+from pipeline.core.math import frames
+from pipeline.core.math.constants import MOON_ROTATION_RATE_RAD_S
 from pipeline.errors import ConfigError
 from pipeline.io import ephemeris
 

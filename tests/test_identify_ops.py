@@ -13,8 +13,9 @@ import pytest
 from conftest import DEFAULT_TOML, shared_file
 
 from pipeline.config import load_config
-from pipeline.core import crater_index, tiling
-from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.math import tiling
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.vision import crater_index
 from pipeline.io import ephemeris
 from pipeline.io.catalogue_db import Catalogue, load_catalogue
 from pipeline.io.pair_index import PairIndexStore

@@ -10,8 +10,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.core import camera, conics, render, sensor, tiling
-from pipeline.core.detection import Craters, DetectionModel, PhysicalSensor
+from pipeline.core.math import tiling
+from pipeline.core.sensors import camera, conics, render
+from pipeline.core.sensors import rim_sensor as sensor
+from pipeline.core.sensors.detection import Craters, DetectionModel, PhysicalSensor
 from pipeline.ops import render as rops
 
 R_MOON = 1737.4e3

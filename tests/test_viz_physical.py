@@ -15,8 +15,9 @@ import pytest
 import rerun as rr
 from test_viz import blueprint_columns, columns, views
 
-from pipeline.core import camera, conics, rotations
-from pipeline.core.detection import DetectionModel
+from pipeline.core.math import rotations
+from pipeline.core.sensors import camera, conics
+from pipeline.core.sensors.detection import DetectionModel
 from pipeline.viz import recording
 from pipeline.vocab import COUNT_COLORS
 

@@ -31,9 +31,9 @@ import numpy as np
 import polars as pl
 from scipy.spatial import cKDTree
 
-from pipeline.core import frames, tiling
-from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.synthetic import generate_catalogue
+from pipeline.core.body.synthetic import generate_catalogue
+from pipeline.core.math import frames, tiling
+from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.errors import CatalogueError, StageInputError
 from pipeline.io.store import now_iso, sha256_file
 from pipeline.io.workspace import PACKAGE_DIR, Workspace, workspace

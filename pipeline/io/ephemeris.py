@@ -27,8 +27,9 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.core import frames, illumination
-from pipeline.core.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
+from pipeline.core.body import illumination
+from pipeline.core.math import frames
+from pipeline.core.math.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
 from pipeline.errors import ConfigError, PipelineError
 
 DE421_FILE = "de421.bsp"

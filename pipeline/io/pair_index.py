@@ -1,6 +1,6 @@
 """The lost-in-space pair-invariant indexes on disk: one .npz per catalogue, region and size
 range, beside the catalogue (config `identification.index_dir`), written atomically and read
-back when the same region is asked for again (`pipeline.core.crater_index`)."""
+back when the same region is asked for again (`pipeline.core.vision.crater_index`)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.crater_index import PairIndex
+from pipeline.core.vision.crater_index import PairIndex
 from pipeline.io.store import atomic_write_bytes
 
 

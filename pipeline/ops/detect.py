@@ -7,9 +7,12 @@ import numpy as np
 import polars as pl
 
 from pipeline.config import DetectionConfig
-from pipeline.core import camera, frames, illumination, rotations, sensor
-from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.detection import (
+from pipeline.core.body import illumination
+from pipeline.core.math import frames, rotations
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.sensors import camera
+from pipeline.core.sensors import rim_sensor as sensor
+from pipeline.core.sensors.detection import (
     PHYSICAL_COLUMNS,
     CraterArrays,
     DetectionModel,

@@ -14,8 +14,13 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from pipeline.core.estimators import CheckOptions, PoseEstimate, RobustOptions, estimate_pose
-from pipeline.core.sensor import SensorNoise, measurement_sigmas
+from pipeline.core.estimation.estimators import (
+    CheckOptions,
+    PoseEstimate,
+    RobustOptions,
+    estimate_pose,
+)
+from pipeline.core.sensors.rim_sensor import SensorNoise, measurement_sigmas
 from pipeline.io.tables import quat_columns, xyz, xyz_columns
 
 _STREAM_TAG = 0xE57  # separates the robust estimator's streams from other users of the seed

@@ -6,11 +6,12 @@ Frame after frame, in time order, like the flight software:
   gravity and noise, fed by the craters this loop identifies and the altimeter) predicts the pose
   and its covariance at the frame; the catalogue craters that can be in view are projected into
   predicted ellipses with that uncertainty, gated against the detections and assigned globally
-  (`pipeline.core.matching`); a robust pose (RANSAC, then the chi-square refit) verifies the
+  (`pipeline.core.vision.matching`); a robust pose (RANSAC, then the chi-square refit) verifies the
   matches and keeps the consistent set, which then updates the filter.
 - lost in space: without a usable prior (no filter state, a prior too wide for tracking, or
   tracking that failed `lost_after_frames` frames in a row), the detections' pair invariants are
-  looked up in the index of the region around a rough position (`pipeline.core.crater_index`),
+  looked up in the index of the region around a rough position
+  (`pipeline.core.vision.crater_index`),
   with the attitude from a star tracker; each hypothesis is verified by the tracking match under
   its pose and a robust pose, and accepted only when it is unambiguous. A fix (re)starts the
   filter.
@@ -33,20 +34,18 @@ from typing import Protocol
 import numpy as np
 import polars as pl
 
-from pipeline.core import (
-    camera,
-    conics,
-    crater_index,
-    frames,
-    illumination,
-    matching,
-    render,
-    rotations,
-    sensor,
-    tiling,
-)
-from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.detection import (
+from pipeline.core.body import illumination
+from pipeline.core.estimation.estimators import CheckOptions, RobustOptions, estimate_pose
+from pipeline.core.estimation.estimators.robust import chi2_gates
+from pipeline.core.estimation.measurement import squared_normalised_residuals
+from pipeline.core.math import frames, rotations, tiling
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.navigation import filter
+from pipeline.core.navigation.eskf import ATT, POS, POSE, NavState
+from pipeline.core.scoring.status import Status
+from pipeline.core.sensors import camera, conics, render
+from pipeline.core.sensors import rim_sensor as sensor
+from pipeline.core.sensors.detection import (
     CraterArrays,
     Craters,
     DetectionModel,
@@ -60,14 +59,9 @@ from pipeline.core.detection import (
     sense_physical,
     world_in_view,
 )
-from pipeline.core.estimators import CheckOptions, RobustOptions, estimate_pose
-from pipeline.core.estimators.robust import chi2_gates
-from pipeline.core.identification import select_used
-from pipeline.core.measurement import squared_normalised_residuals
-from pipeline.core.navigation import filter
-from pipeline.core.navigation.eskf import ATT, POS, POSE, NavState
-from pipeline.core.sensor import SensorNoise, measurement_sigmas
-from pipeline.core.status import Status
+from pipeline.core.sensors.rim_sensor import SensorNoise, measurement_sigmas
+from pipeline.core.vision import crater_index, matching
+from pipeline.core.vision.identification import select_used
 from pipeline.io.tables import xyz
 from pipeline.ops.detect import tables, true_poses
 from pipeline.ops.imu import stream
@@ -259,7 +253,8 @@ def rim_crests(craters: CraterArrays) -> CraterArrays:
     """The catalogue as a navigator of rendered images holds it: each crater at the centre of
     its rim crest, where the images show the rim, from the catalogue's craters' terrain (Pike's
     fresh-crater shapes: the rim height, and the neighbours' bowls and ejecta under it,
-    `pipeline.core.render.rim_crests`): the catalogue with elevations from its digital elevation
+    `pipeline.core.sensors.render.rim_crests`): the catalogue with elevations from its digital
+    elevation
     model, as a flight catalogue carries them. The world differs by the catalogue's errors."""
     c_m, _ = render.rim_crests(craters.r_mcmf_m, craters.diam_km * 1e3)
     return Craters(craters.crater_id, craters.diam_km, c_m, craters.index)
@@ -453,7 +448,8 @@ def _track(meas: sensor.EllipseMeasurement, r_mci_m: np.ndarray, q_mci_from_body
 def _verify(meas: sensor.EllipseMeasurement, matched: np.ndarray, confidence: np.ndarray,
             dcm_body_from_mcmf: np.ndarray, dcm_mci_from_mcmf: np.ndarray, craters: CraterArrays,
             phys: PhysicalSensor, opts: IdentifyOptions, rng: np.random.Generator) -> _Match:
-    """The robust pose (RANSAC, chi-square refit; `pipeline.core.estimators.robust`) of the
+    """The robust pose (RANSAC, chi-square refit; `pipeline.core.estimation.estimators.robust`) of
+    the
     matched detections, at most VERIFY_MAX_CRATERS of them; the matches within its chi-square
     gate are the identified craters."""
     cam = phys.camera

@@ -19,12 +19,12 @@ import numpy as np
 import polars as pl
 
 from pipeline.config import AltimeterConfig, ImuConfig, TrajectoryConfig
-from pipeline.core.camera import ray_sphere_distance
-from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.navigation import imu
+from pipeline.core.dynamics.orbit import Descent
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.math.rotations import dcm_from_q
 from pipeline.core.navigation.filter import TIME_TOL_S
-from pipeline.core.orbit import Descent
-from pipeline.core.rotations import dcm_from_q
+from pipeline.core.sensors import imu
+from pipeline.core.sensors.camera import ray_sphere_distance
 from pipeline.io.tables import quat_columns, xyz_columns
 from pipeline.ops.trajectory import propagate
 

@@ -17,9 +17,9 @@ from scipy.stats import chi2
 
 from pipeline.core.navigation import eskf, filter
 from pipeline.core.navigation.eskf import ATT, BA, BG, N_STATES, POS, VEL, NavState
-from pipeline.core.navigation.imu import ImuGrade
-from pipeline.core.sensor import SensorNoise
-from pipeline.core.status import Status
+from pipeline.core.scoring.status import Status
+from pipeline.core.sensors.imu import ImuGrade
+from pipeline.core.sensors.rim_sensor import SensorNoise
 from pipeline.errors import StageInputError
 from pipeline.io.tables import quat_columns, quats, xyz, xyz_columns
 from pipeline.ops.estimate import UsedCraters

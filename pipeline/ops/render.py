@@ -35,8 +35,12 @@ import numpy as np
 import polars as pl
 from scipy.optimize import linear_sum_assignment, minimize
 
-from pipeline.core import camera, conics, crater_detect, illumination, render, sensor, tiling
-from pipeline.core.detection import CraterArrays, DetectionModel
+from pipeline.core.body import illumination
+from pipeline.core.math import tiling
+from pipeline.core.sensors import camera, conics, render
+from pipeline.core.sensors import rim_sensor as sensor
+from pipeline.core.sensors.detection import CraterArrays, DetectionModel
+from pipeline.core.vision.detectors import classical as crater_detect
 
 DIAM_BINS_PX = (5.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0, np.inf)
 INCIDENCE_BINS_DEG = (0.0, 30.0, 50.0, 70.0, 80.0, 90.0)

@@ -14,8 +14,10 @@ import numpy as np
 import polars as pl
 
 from pipeline.config import ScoringConfig, Window
-from pipeline.core import estimators, frames, metrics, rotations
-from pipeline.core.sensor import SensorNoise, measurement_sigmas
+from pipeline.core.estimation import estimators
+from pipeline.core.math import frames, rotations
+from pipeline.core.scoring import metrics
+from pipeline.core.sensors.rim_sensor import SensorNoise, measurement_sigmas
 from pipeline.io.tables import quats, xyz
 from pipeline.vocab import ATTITUDE, ATTITUDE_MCI, POSITION, QUANTITIES
 

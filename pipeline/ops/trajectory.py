@@ -14,8 +14,9 @@ import polars as pl
 from scipy.spatial.transform import Rotation
 
 from pipeline.config import TrajectoryConfig
-from pipeline.core import frames, orbit, rotations
-from pipeline.core.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
+from pipeline.core.dynamics import orbit
+from pipeline.core.math import frames, rotations
+from pipeline.core.math.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
 from pipeline.errors import ConfigError
 from pipeline.io.tables import quat_columns, xyz_columns
 

@@ -11,7 +11,7 @@ import numpy as np
 import polars as pl
 
 from pipeline.config import RunConfig
-from pipeline.core.estimators import RobustOptions
+from pipeline.core.estimation.estimators import RobustOptions
 from pipeline.core.navigation.eskf import BA, BG, N_STATES, VEL
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult

@@ -8,8 +8,8 @@ from __future__ import annotations
 import polars as pl
 
 from pipeline.config import RunConfig
-from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.estimators import CheckOptions, RobustOptions
+from pipeline.core.estimation.estimators import CheckOptions, RobustOptions
+from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.estimate import EstimateOptions, UsedCraters, estimate_all

@@ -21,7 +21,7 @@ from pipeline.io.store import atomic_write_text
 from pipeline.io.workspace import workspace
 from pipeline.viz import recording
 
-CATALOGUE_CODE = ("pipeline.io.catalogue_db", "pipeline.core.synthetic")
+CATALOGUE_CODE = ("pipeline.io.catalogue_db", "pipeline.core.body.synthetic")
 
 
 def db_path(cfg: RunConfig) -> Path:

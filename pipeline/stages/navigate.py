@@ -14,7 +14,7 @@ import numpy as np
 import polars as pl
 
 from pipeline.config import RunConfig
-from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.navigation.filter import FilterOptions
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.estimate import UsedCraters

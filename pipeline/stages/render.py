@@ -2,8 +2,10 @@
 
 Renders the world's craters (the catalogue with its horizontal and diameter errors; the rendered
 terrain is the craters' profiles on the sphere, so the vertical error does not move it) under the
-ephemeris Sun through the physical camera (`pipeline.core.render`), detects rim ellipses in the
-pixels (`pipeline.core.crater_detect`) and matches them to the true rims, for scoring only
+ephemeris Sun through the physical camera (`pipeline.core.sensors.render`), detects rim ellipses in
+the
+pixels (`pipeline.core.vision.detectors.classical`) and matches them to the true rims, for scoring
+only
 (`pipeline.ops.render`). Writes pixel_detections.parquet (one row per detection), rendered_
 craters.parquet (one row per true rim in view), images.parquet (per image), detection_recall.
 parquet (recall by apparent size and incidence beside the detection model's prediction),
@@ -19,7 +21,8 @@ import numpy as np
 import polars as pl
 
 from pipeline.config import RunConfig
-from pipeline.core import render, sensor
+from pipeline.core.sensors import render
+from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.io import ephemeris

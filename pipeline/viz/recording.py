@@ -59,8 +59,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from pipeline.core import rotations
-from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.math import rotations
+from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.io.rrd import recording_file
 from pipeline.vocab import (
     ATTITUDE,
@@ -252,7 +252,8 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
     (`log_sun`); with the physical sensor's rim ellipses in `detections`, the ellipses
     (`log_rim_ellipses`), and the camera view's crater points become dots at the bearings (the
     ellipses show the craters' size)."""
-    from pipeline.core import camera, frames
+    from pipeline.core.math import frames
+    from pipeline.core.sensors import camera
     from pipeline.io.tables import quats, xyz
 
     frame = frames_table["frame"].to_numpy()
@@ -674,7 +675,7 @@ def log_estimation(rec: rr.RecordingStream, estimates, detections, trajectory) -
     rejected craters."""
     import polars as pl
 
-    from pipeline.core import frames
+    from pipeline.core.math import frames
     from pipeline.io.tables import quats, xyz
 
     theta_of = dict(zip(trajectory["frame"].to_list(), trajectory["theta_m_rad"].to_list(),
@@ -1059,7 +1060,7 @@ def _dim(color, k: float = 0.55) -> tuple[int, ...]:
     return tuple(int(c * k) for c in color)
 
 
-GYRO_BIAS_ENTITY = "gyro_deg_h"  # rad/s -> deg/h (pipeline.core.navigation.imu.DEG_PER_H)
+GYRO_BIAS_ENTITY = "gyro_deg_h"  # rad/s -> deg/h (pipeline.core.sensors.imu.DEG_PER_H)
 ACCEL_BIAS_ENTITY = "accel_milli_g"  # m/s^2 -> milli-g (imu.MILLI_G)
 ALTIMETER_COLORS = {"measured": (255, 200, 60), "true": (200, 200, 200),
                     "fault": (230, 0, 230)}
@@ -1078,7 +1079,7 @@ def log_imu(rec: rr.RecordingStream, truth, altimeter, imu_decimated, *, imu_rat
       because a decimated sample still spans 1 / imu_rate_hz).
     `frames` (a table with `frame` and `t_s`, e.g. the trajectory) puts the rows at a frame's
     time on the `frame` timeline too; without it every series is on `sim_time` alone."""
-    from pipeline.core.navigation.imu import DEG_PER_H, MILLI_G
+    from pipeline.core.sensors.imu import DEG_PER_H, MILLI_G
 
     g = TimeGrid.of(truth, frames)
     for i, c in enumerate("xyz"):
@@ -1260,7 +1261,7 @@ def _log_navigation_consistency(rec: rr.RecordingStream, nav, grid: TimeGrid) ->
 
 def _log_navigation_biases(rec: rr.RecordingStream, nav, grid: TimeGrid) -> None:
     """/navigation/bias/gyro_deg_h/<axis>/{estimate, true} and likewise accel_milli_g."""
-    from pipeline.core.navigation.imu import DEG_PER_H, MILLI_G
+    from pipeline.core.sensors.imu import DEG_PER_H, MILLI_G
 
     for entity, sensor, unit, k, label in (
             (GYRO_BIAS_ENTITY, "gyro", "_rad_s", 1.0 / DEG_PER_H, "deg/h"),

@@ -10,13 +10,14 @@ import numpy as np
 from conftest import DEFAULT_TOML
 
 from pipeline.config import load_config
-from pipeline.core import measurement
-from pipeline.core.camera import ray_sphere_distance
-from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.navigation import filter, imu
+from pipeline.core.dynamics.orbit import Descent
+from pipeline.core.estimation import measurement
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.math.rotations import dcm_from_q
+from pipeline.core.navigation import filter
 from pipeline.core.navigation.eskf import NavState, ProcessNoise
-from pipeline.core.orbit import Descent
-from pipeline.core.rotations import dcm_from_q
+from pipeline.core.sensors import imu
+from pipeline.core.sensors.camera import ray_sphere_distance
 from pipeline.ops.trajectory import propagate
 
 RATE_HZ = 100.0

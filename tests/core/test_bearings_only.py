@@ -18,11 +18,12 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from pipeline.core import estimators as est
-from pipeline.core import frames, measurement
-from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.estimators import bearings
-from pipeline.core.estimators.base import prepare
+from pipeline.core.estimation import estimators as est
+from pipeline.core.estimation import measurement
+from pipeline.core.estimation.estimators import bearings
+from pipeline.core.estimation.estimators.base import prepare
+from pipeline.core.math import frames
+from pipeline.core.math.constants import MOON_RADIUS_M
 
 SIGMA_B = 1e-4
 SIGMA_R = 10.0

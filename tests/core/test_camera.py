@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import camera
-from pipeline.core.constants import MOON_RADIUS_M as R
+from pipeline.core.math.constants import MOON_RADIUS_M as R
+from pipeline.core.sensors import camera
 
 CORNER = camera.FieldOfView.from_config(45.0, "corner_half_angle")
 FULL = camera.FieldOfView.from_config(45.0, "full_angle")

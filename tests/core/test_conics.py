@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import camera, conics
-from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.sensors import camera, conics
 
 FOV = camera.FieldOfView.from_config(45.0, "full_angle")
 SIZE = 1024

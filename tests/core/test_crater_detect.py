@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from pipeline.core import camera, conics, crater_detect, render
+from pipeline.core.sensors import camera, conics, render
+from pipeline.core.vision.detectors import classical as crater_detect
 
 R_MOON = render.MOON_RADIUS_M
 FOV = camera.FieldOfView.from_config(45.0, "corner_half_angle")

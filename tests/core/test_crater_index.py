@@ -14,10 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from pipeline.core import camera, conics
-from pipeline.core import crater_index as ci
-from pipeline.core.constants import MOON_RADIUS_M as R_MOON
-from pipeline.core.frames import mcmf_from_latlon
+from pipeline.core.math.constants import MOON_RADIUS_M as R_MOON
+from pipeline.core.math.frames import mcmf_from_latlon
+from pipeline.core.sensors import camera, conics
+from pipeline.core.vision import crater_index as ci
 
 FOV = camera.FieldOfView.from_config(45.0, "full_angle")
 SIZE = 1024

@@ -15,9 +15,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import camera, tiling
-from pipeline.core.constants import MOON_RADIUS_M as R
-from pipeline.core.detection import Craters, DetectionModel, detect_frame, frame_rngs
+from pipeline.core.math import tiling
+from pipeline.core.math.constants import MOON_RADIUS_M as R
+from pipeline.core.sensors import camera
+from pipeline.core.sensors.detection import Craters, DetectionModel, detect_frame, frame_rngs
 
 ORDER = 6
 LAT0, LON0 = 12.3, -41.7  # centre of the crater grid (deg)

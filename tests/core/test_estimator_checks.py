@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 from scipy.stats import binom
 
-from pipeline.core import estimators as est
-from pipeline.core import frames, measurement
-from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.estimation import estimators as est
+from pipeline.core.estimation import measurement
+from pipeline.core.math import frames
+from pipeline.core.math.constants import MOON_RADIUS_M
 
 SIGMA_B = 1e-4  # rad per component
 SIGMA_R = 10.0  # m

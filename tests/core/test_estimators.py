@@ -17,11 +17,12 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from pipeline.core import estimators as est
-from pipeline.core import frames, measurement, rotations
-from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.estimators.quest import _quest_solve
-from pipeline.core.status import STATUSES
+from pipeline.core.estimation import estimators as est
+from pipeline.core.estimation import measurement
+from pipeline.core.estimation.estimators.quest import _quest_solve
+from pipeline.core.math import frames, rotations
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.scoring.status import STATUSES
 
 SIGMA_B = 1e-4  # rad per component
 SIGMA_R = 10.0  # m

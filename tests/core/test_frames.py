@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import frames
-from pipeline.core.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
+from pipeline.core.math import frames
+from pipeline.core.math.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
 
 R = MOON_RADIUS_M
 

@@ -6,8 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.core import camera, frames, illumination
-from pipeline.core.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
+from pipeline.core.body import illumination
+from pipeline.core.math import frames
+from pipeline.core.math.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
+from pipeline.core.sensors import camera
 
 R = MOON_RADIUS_M
 AU_M = 1.495978707e11

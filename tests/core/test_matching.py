@@ -1,4 +1,5 @@
-"""Crater identification by tracking (`pipeline.core.matching`): the ellipse vector against its
+"""Crater identification by tracking (`pipeline.core.vision.matching`): the ellipse vector against
+its
 ellipse (round trip, rim points, continuity through a circle), its covariance against a Monte
 Carlo of `sensor.measure_ellipses`, the predicted rims' pose Jacobian against the test's own
 central differences and their covariance against a Monte Carlo of poses and catalogue errors
@@ -15,8 +16,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import camera, conics, matching, sensor
-from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.sensors import camera, conics
+from pipeline.core.sensors import rim_sensor as sensor
+from pipeline.core.vision import matching
 
 SIZE = 1024
 K = camera.intrinsics(camera.FieldOfView.from_config(45.0, "full_angle"), SIZE)  # f = 1236 px

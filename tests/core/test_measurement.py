@@ -13,7 +13,8 @@ import pytest
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import frames, measurement
+from pipeline.core.estimation import measurement
+from pipeline.core.math import frames
 
 ALPHA = 1e-4
 SIGMA_BEARING = 1e-4

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import metrics
+from pipeline.core.scoring import metrics
 
 # A DCM entry after a quaternion round trip and a few products is exact to a few ulp (2.2e-16);
 # 1e-14 (45 ulp) bounds it (observed: 2e-15). An angle read off such entries inherits that error,

@@ -11,12 +11,13 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from pipeline.core import metrics
-from pipeline.core.camera import ray_sphere_distance
-from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.navigation import eskf, filter, imu, strapdown
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.math.rotations import dcm_from_q, q_exp, q_multiply
+from pipeline.core.navigation import eskf, filter, strapdown
 from pipeline.core.navigation.eskf import ATT, POS, VEL, NavState
-from pipeline.core.rotations import dcm_from_q, q_exp, q_multiply
+from pipeline.core.scoring import metrics
+from pipeline.core.sensors import imu
+from pipeline.core.sensors.camera import ray_sphere_distance
 
 
 def test_noise_free_mechanisation_follows_the_truth_over_the_whole_descent() -> None:

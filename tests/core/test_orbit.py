@@ -8,8 +8,9 @@ import pytest
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import frames, orbit, rotations
-from pipeline.core.constants import MOON_GM_M3_S2, MOON_RADIUS_M
+from pipeline.core.dynamics import orbit
+from pipeline.core.math import frames, rotations
+from pipeline.core.math.constants import MOON_GM_M3_S2, MOON_RADIUS_M
 
 MU = MOON_GM_M3_S2
 R = MOON_RADIUS_M

@@ -16,8 +16,8 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 from test_bearings_only import make_frame
 
-from pipeline.core import estimators as est
-from pipeline.core import measurement
+from pipeline.core.estimation import estimators as est
+from pipeline.core.estimation import measurement
 
 SIGMA_B = 1e-4
 SIGMA_R = 10.0

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import camera
+from pipeline.core.sensors import camera
 
 FULL = camera.FieldOfView.from_config(45.0, "full_angle")
 CORNER = camera.FieldOfView.from_config(45.0, "corner_half_angle")

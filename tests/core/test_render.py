@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import camera, conics, render
+from pipeline.core.sensors import camera, conics, render
 
 R_MOON = render.MOON_RADIUS_M
 FOV = camera.FieldOfView.from_config(45.0, "corner_half_angle")

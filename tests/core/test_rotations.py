@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import rotations
+from pipeline.core.math import rotations
 
 
 def test_quaternion_dcm_consistent_with_scipy() -> None:

@@ -1,4 +1,5 @@
-"""The physical sensor: `pipeline.core.sensor` and the frame kernel `detect_frame` with `physical`.
+"""The physical sensor: `pipeline.core.sensors.rim_sensor` and the frame kernel `detect_frame` with
+`physical`.
 
 Kernels: the hashed per-crater normals (deterministic, order-free, standard normal), the world's
 fixed catalogue errors, the detection probability's limits, the ellipse noise, bearings and
@@ -22,9 +23,10 @@ from scipy.spatial.transform import Rotation
 from test_detection import Craters, make_craters, unit_of
 from test_detection import pose as detection_pose
 
-from pipeline.core import camera, conics, sensor
-from pipeline.core.constants import MOON_RADIUS_M as R
-from pipeline.core.detection import (
+from pipeline.core.math.constants import MOON_RADIUS_M as R
+from pipeline.core.sensors import camera, conics
+from pipeline.core.sensors import rim_sensor as sensor
+from pipeline.core.sensors.detection import (
     PHYSICAL_COLUMNS,
     DetectionModel,
     FrameDetections,

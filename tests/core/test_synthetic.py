@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from scipy import stats
 
 from pipeline.config import load_config
-from pipeline.core import synthetic as syn
+from pipeline.core.body import synthetic as syn
 
 TARGETS = {1.0: 1_300_000, 5.0: 83_000, 20.0: 6_972}  # N(>=D) over the Moon, Robbins (2018)
 ALPHA_SIZE = 1e-3

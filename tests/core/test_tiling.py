@@ -14,9 +14,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.core import tiling
-from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.synthetic import generate_catalogue
+from pipeline.core.body.synthetic import generate_catalogue
+from pipeline.core.math import tiling
+from pipeline.core.math.constants import MOON_RADIUS_M
 
 ORDERS = range(3, 9)
 ONE_KM_RAD = 1e3 / MOON_RADIUS_M

@@ -22,7 +22,7 @@ from scipy import stats
 from scipy.spatial.transform import Rotation
 
 from pipeline.config import load_config
-from pipeline.core import frames
+from pipeline.core.math import frames
 from pipeline.io.catalogue_db import load_catalogue
 from pipeline.io.store import RunStore
 from pipeline.ops import detect

@@ -23,8 +23,8 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2, poisson
 
 from pipeline.config import RunConfig
-from pipeline.core import estimators
-from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.estimation import estimators
+from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
 from pipeline.ops import estimate
@@ -280,11 +280,11 @@ def test_estimator_never_sees_the_truth(workdir, catalogue_db, monkeypatch):
     })
     for module, name in (("pipeline.stages.trajectory", "simulate"),
                          ("pipeline.ops.trajectory", "simulate"),
-                         ("pipeline.core.orbit", "propagate_descent"),
-                         ("pipeline.core.orbit", "apoapsis_state"),
+                         ("pipeline.core.dynamics.orbit", "propagate_descent"),
+                         ("pipeline.core.dynamics.orbit", "apoapsis_state"),
                          ("pipeline.stages.detect", "detect_all"),
                          ("pipeline.ops.detect", "detect_all"),
-                         ("pipeline.core.detection", "detect_frame")):
+                         ("pipeline.core.sensors.detection", "detect_frame")):
         monkeypatch.setattr(f"{module}.{name}", forbid)
     spy = EstimatorSpy()
     monkeypatch.setattr(estimate, "estimate_pose", spy)

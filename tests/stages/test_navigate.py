@@ -19,8 +19,8 @@ import rerun as rr
 from conftest import DEFAULT_TOML, query, run_stages, small_config
 
 from pipeline.config import load_config
-from pipeline.core import metrics
 from pipeline.core.navigation import strapdown
+from pipeline.core.scoring import metrics
 from pipeline.errors import ConfigError
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz

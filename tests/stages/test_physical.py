@@ -18,8 +18,9 @@ import polars as pl
 import pytest
 from conftest import query, run_stages, small_config
 
-from pipeline.core import frames, sensor
-from pipeline.core.detection import PHYSICAL_COLUMNS
+from pipeline.core.math import frames
+from pipeline.core.sensors import rim_sensor as sensor
+from pipeline.core.sensors.detection import PHYSICAL_COLUMNS
 from pipeline.io.store import RunStore
 from pipeline.io.tables import xyz
 

@@ -15,8 +15,8 @@ import pytest
 import rerun as rr
 from conftest import run_stages, small_config
 
-from pipeline.core import render
-from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.sensors import render
 from pipeline.io.catalogue_db import load_catalogue
 from pipeline.io.store import RunStore
 from pipeline.io.tables import xyz

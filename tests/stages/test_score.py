@@ -22,7 +22,7 @@ from conftest import run_stages, small_config
 from scipy.spatial.transform import Rotation
 
 from pipeline.config import RunConfig
-from pipeline.core import estimators
+from pipeline.core.estimation import estimators
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
 from pipeline.ops.score import true_used_positions

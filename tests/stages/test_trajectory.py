@@ -16,7 +16,7 @@ from conftest import run_stages
 from scipy.spatial.transform import Rotation
 
 from pipeline.config import load_config
-from pipeline.core.constants import MOON_GM_M3_S2, MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
+from pipeline.core.math.constants import MOON_GM_M3_S2, MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
 from pipeline.errors import PipelineError
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
@@ -53,7 +53,8 @@ def run_trajectory(run_id: str, **trajectory) -> tuple[RunStore, pl.DataFrame]:
 
 def kepler_time_to_radius_s(ra_m: float, rp_m: float, r_m: float) -> float:
     """Time (s) from apoapsis down to radius r_m, by the eccentric anomaly E in (pi, 2 pi):
-    r = a (1 - e cos E), M = E - e sin E (independent of pipeline.core.orbit's formulation)."""
+    r = a (1 - e cos E), M = E - e sin E (independent of pipeline.core.dynamics.orbit's
+    formulation)."""
     a, e = 0.5 * (ra_m + rp_m), (ra_m - rp_m) / (ra_m + rp_m)
     ecc = 2 * np.pi - np.arccos((1 - r_m / a) / e)
     return float((ecc - e * np.sin(ecc) - np.pi) / np.sqrt(MU / a**3))

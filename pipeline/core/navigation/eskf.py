@@ -3,7 +3,7 @@
 Nominal state: r (m) and v (m/s) in MCI, q_mci_from_body, gyro bias b_g (rad/s), accelerometer
 bias b_a (m/s^2). Error state dx (15,): [dr, dv, dtheta, db_g, db_a], with the attitude error a
 right (body-frame) perturbation R_true = R Exp([dtheta]x), the convention of
-`pipeline.core.measurement`, so its Jacobians serve the filter as they are.
+`pipeline.core.estimation.measurement`, so its Jacobians serve the filter as they are.
 
 Continuous error dynamics (Sola, "Quaternion kinematics for the error-state Kalman filter",
 arXiv:1711.02508, 2017, Sec. 5.3.3, local attitude error), with omega and f the bias-corrected
@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.core.camera import ray_sphere_distance
-from pipeline.core.rotations import dcm_from_q, q_exp, q_log, q_multiply, skew
+from pipeline.core.math.rotations import dcm_from_q, q_exp, q_log, q_multiply, skew
+from pipeline.core.sensors.camera import ray_sphere_distance
 
 N_STATES = 15
 POS, VEL, ATT, BG, BA = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15))

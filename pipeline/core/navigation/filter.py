@@ -15,11 +15,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import chi2
 
-from pipeline.core import measurement
+from pipeline.core.estimation import measurement
+from pipeline.core.math.rotations import q_log, q_multiply
 from pipeline.core.navigation import eskf
 from pipeline.core.navigation.eskf import POSE, NavState
 from pipeline.core.navigation.strapdown import Trajectory, gravity_gradient, mechanise
-from pipeline.core.rotations import q_log, q_multiply
 
 BORESIGHT_BODY = np.array([0.0, 0.0, 1.0])  # the camera and altimeter look along body +z
 TIME_TOL_S = 1e-6  # times closer than this are one time (k / rate computed two ways)

@@ -10,7 +10,8 @@ second order and implicit in r_k; a segment of samples is solved at once, vector
 attitudes by a prefix product of quaternions (Hillis-Steele scan), the positions by a Picard
 iteration that contracts by ~(GM / r^3) T^2 / 2 per pass over a segment of T seconds.
 
-Gravity models: `point_mass` (the truth's, `pipeline.core.orbit`) and `j2` (adds the Moon's J2
+Gravity models: `point_mass` (the truth's, `pipeline.core.dynamics.orbit`) and `j2` (adds the
+Moon's J2
 oblateness, Konopliv et al. 2013 GRAIL GL0660B, J2 = 2.0330e-4 about MCI z) for a navigator
 whose model differs from the world's.
 """
@@ -22,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.core.constants import MOON_GM_M3_S2, MOON_RADIUS_M
-from pipeline.core.rotations import cross, dcm_from_q, q_exp, q_multiply
+from pipeline.core.math.constants import MOON_GM_M3_S2, MOON_RADIUS_M
+from pipeline.core.math.rotations import cross, dcm_from_q, q_exp, q_multiply
 
 MOON_J2 = 2.0330e-4  # GRAIL GL0660B (Konopliv et al., JGR Planets 118, 2013), unnormalised
 GRAVITY_MODELS = ("point_mass", "j2")

@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from pipeline.core.rotations import dcm_from_q, skew
+from pipeline.core.math.rotations import dcm_from_q, skew
 
 Sigma = float | np.ndarray
 """A noise standard deviation: one number for every crater, or an (N,) array, one per crater."""

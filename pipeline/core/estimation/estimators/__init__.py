@@ -8,10 +8,12 @@
 - `robust`: RANSAC and the chi-square refit gate; `information`: Fisher information and CRLB;
   `checks`: the consistency, surface and conditioning checks on every final estimate.
 
-Measurement model (paper Eq. 10-11, ERRATA 6) in `pipeline.core.measurement`: noise one number
+Measurement model (paper Eq. 10-11, ERRATA 6) in `pipeline.core.estimation.measurement`: noise one
+number
 for every crater or one value per crater; a NaN range means the crater was seen by its bearing
 only (bearings-only frames: "joint"; "paper" needs 3 ranges). Statuses
-(`pipeline.core.status.Status`): `ok`; `too_few_craters` (fewer than 3 usable rows: finite c and
+(`pipeline.core.scoring.status.Status`): `ok`; `too_few_craters` (fewer than 3 usable rows: finite
+c and
 u, a non-zero bearing, a positive range or NaN; or, robust, fewer than 3 craters consistent with
 any pose); `needs_ranges` (paper: fewer than 3 usable rows with a range); `ambiguous` (joint: 3
 craters, bearings only, no prior, several exact poses); `not_converged` (iteration cap);
@@ -26,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.core.estimators.base import (
+from pipeline.core.estimation.estimators.base import (
     ESTIMATORS,
     MAX_CONDITION,
     Estimator,
@@ -34,15 +36,15 @@ from pipeline.core.estimators.base import (
     PoseEstimate,
     prepare,
 )
-from pipeline.core.estimators.bearings import absolute_orientation, bearings_initial, p3p
-from pipeline.core.estimators.checks import CheckOptions, check_estimate
-from pipeline.core.estimators.information import crlb, fisher_information
-from pipeline.core.estimators.joint import JointEstimator
-from pipeline.core.estimators.paper import PaperEstimator
-from pipeline.core.estimators.position import closed_form_position, gauss_newton_position
-from pipeline.core.estimators.quest import quest, quest_position_sensitivity
-from pipeline.core.estimators.robust import RobustOptions, robust_fit
-from pipeline.core.measurement import Sigma, noise
+from pipeline.core.estimation.estimators.bearings import absolute_orientation, bearings_initial, p3p
+from pipeline.core.estimation.estimators.checks import CheckOptions, check_estimate
+from pipeline.core.estimation.estimators.information import crlb, fisher_information
+from pipeline.core.estimation.estimators.joint import JointEstimator
+from pipeline.core.estimation.estimators.paper import PaperEstimator
+from pipeline.core.estimation.estimators.position import closed_form_position, gauss_newton_position
+from pipeline.core.estimation.estimators.quest import quest, quest_position_sensitivity
+from pipeline.core.estimation.estimators.robust import RobustOptions, robust_fit
+from pipeline.core.estimation.measurement import Sigma, noise
 
 METHODS: tuple[str, ...] = tuple(ESTIMATORS)
 DEFAULT_CHECKS = CheckOptions()

@@ -28,8 +28,8 @@ import math
 
 import numpy as np
 
-from pipeline.core.measurement import Sigma
-from pipeline.core.rotations import q_from_dcm
+from pipeline.core.estimation.measurement import Sigma
+from pipeline.core.math.rotations import q_from_dcm
 
 # Cold start: candidate poses come from at most this many well-spread triples (a triple near the
 # "danger cylinder", where P3P roots merge, gives a poor pose; another triple does not).

@@ -31,20 +31,20 @@ from functools import cache
 import numpy as np
 from scipy.stats import chi2
 
-from pipeline.core.estimators.base import (
+from pipeline.core.estimation.estimators.base import (
     MAX_CONDITION,
     PoseEstimate,
     failed,
     inverse_if_well_conditioned,
 )
-from pipeline.core.measurement import (
+from pipeline.core.estimation.measurement import (
     Sigma,
     measurement_count,
     per_crater,
     predict,
     whitened_system,
 )
-from pipeline.core.status import Status
+from pipeline.core.scoring.status import Status
 
 
 @dataclass(frozen=True)

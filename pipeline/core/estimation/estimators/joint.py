@@ -13,7 +13,7 @@ from typing import ClassVar
 import numpy as np
 from scipy.stats import chi2
 
-from pipeline.core.estimators.base import (
+from pipeline.core.estimation.estimators.base import (
     EPS,
     ROUNDING_FACTOR,
     Estimator,
@@ -21,10 +21,10 @@ from pipeline.core.estimators.base import (
     failed,
     inverse_if_well_conditioned,
 )
-from pipeline.core.estimators.bearings import bearings_candidates
-from pipeline.core.estimators.paper import PaperEstimator
-from pipeline.core.estimators.quest import quest
-from pipeline.core.measurement import (
+from pipeline.core.estimation.estimators.bearings import bearings_candidates
+from pipeline.core.estimation.estimators.paper import PaperEstimator
+from pipeline.core.estimation.estimators.quest import quest
+from pipeline.core.estimation.measurement import (
     Sigma,
     line_of_sight,
     measurement_count,
@@ -32,8 +32,8 @@ from pipeline.core.measurement import (
     squared_normalised_residuals,
     whitened_system,
 )
-from pipeline.core.rotations import positive_scalar, q_exp, q_from_dcm, q_multiply
-from pipeline.core.status import Status
+from pipeline.core.math.rotations import positive_scalar, q_exp, q_from_dcm, q_multiply
+from pipeline.core.scoring.status import Status
 
 # Safeguarded Gauss-Newton (`JointEstimator.refine`, for starts other than the paper's): a step
 # is shortened to the minimum of the parabola through the costs (`_line_search`) when that is

@@ -3,7 +3,8 @@
 Replaces the paper's abstract sensor (Eq. 9 visibility, Eq. 10-11 noise) when chosen:
 - the world is not the catalogue: each crater's true centre and diameter differ from its catalogue
   entry by a fixed, seeded error (`world_craters`), the same in every frame;
-- each true rim is projected into an image ellipse (`pipeline.core.conics`), measured with pixel
+- each true rim is projected into an image ellipse (`pipeline.core.sensors.conics`), measured with
+pixel
   noise on its centre and semi-axes;
 - a crater is detected with a probability that depends on its apparent diameter in pixels, the
   solar incidence and the emission angle at the crater (`detection_probability`);
@@ -22,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.core import conics
-from pipeline.core.camera import PixelCamera
+from pipeline.core.sensors import conics
+from pipeline.core.sensors.camera import PixelCamera
 
 _U64 = np.uint64
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.core.estimators.base import inverse_if_well_conditioned
-from pipeline.core.measurement import Sigma, whitened_jacobian
+from pipeline.core.estimation.estimators.base import inverse_if_well_conditioned
+from pipeline.core.estimation.measurement import Sigma, whitened_jacobian
 
 
 def fisher_information(r_mci_m: np.ndarray, q_mci_from_body: np.ndarray, c_mci_m: np.ndarray, *,

@@ -13,10 +13,10 @@ from functools import cache
 import numpy as np
 from scipy.stats import chi2
 
-from pipeline.core.estimators.base import Estimator, PoseEstimate, failed
-from pipeline.core.estimators.bearings import absolute_orientation, crater_costs, p3p
-from pipeline.core.measurement import Sigma, per_crater, squared_normalised_residuals
-from pipeline.core.status import Status
+from pipeline.core.estimation.estimators.base import Estimator, PoseEstimate, failed
+from pipeline.core.estimation.estimators.bearings import absolute_orientation, crater_costs, p3p
+from pipeline.core.estimation.measurement import Sigma, per_crater, squared_normalised_residuals
+from pipeline.core.scoring.status import Status
 
 # RANSAC's consensus gate is the final chi-square gate widened by this factor in sigma: a 3-crater
 # pose predicts the other craters several sigma off, while a false match is kilometres off.

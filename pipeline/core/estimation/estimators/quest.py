@@ -7,9 +7,9 @@ import math
 
 import numpy as np
 
-from pipeline.core.estimators.base import inverse_if_well_conditioned
-from pipeline.core.measurement import line_of_sight
-from pipeline.core.rotations import dcm_from_q, positive_scalar, skew
+from pipeline.core.estimation.estimators.base import inverse_if_well_conditioned
+from pipeline.core.estimation.measurement import line_of_sight
+from pipeline.core.math.rotations import dcm_from_q, positive_scalar, skew
 
 # QUEST falls back to sequential rotations when |scalar part| of its quaternion is below this. At
 # least one of the four frames (as is, rotated 180 deg about x, y or z) then has |q4| >= 0.57.

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import lfilter
 
-from pipeline.core.rotations import q_log, q_multiply
+from pipeline.core.math.rotations import q_log, q_multiply
 
 DEG_PER_H = np.pi / 180.0 / 3600.0  # rad/s
 DEG_PER_SQRT_H = np.pi / 180.0 / 60.0  # rad/sqrt(s)

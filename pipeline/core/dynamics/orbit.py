@@ -17,9 +17,9 @@ from scipy.integrate import OdeSolution, solve_ivp
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
-from pipeline.core import rotations
-from pipeline.core.constants import MOON_GM_M3_S2, MOON_RADIUS_M
-from pipeline.core.rotations import cross
+from pipeline.core.math import rotations
+from pipeline.core.math.constants import MOON_GM_M3_S2, MOON_RADIUS_M
+from pipeline.core.math.rotations import cross
 
 
 def time_from_apoapsis_to_radius(apoapsis_radius_m: float, periapsis_radius_m: float,

@@ -7,14 +7,14 @@ import math
 
 import numpy as np
 
-from pipeline.core.estimators.base import (
+from pipeline.core.estimation.estimators.base import (
     EPS,
     MAX_CONDITION,
     ROUNDING_FACTOR,
     inverse_if_well_conditioned,
 )
-from pipeline.core.measurement import Sigma, line_of_sight
-from pipeline.core.status import Status
+from pipeline.core.estimation.measurement import Sigma, line_of_sight
+from pipeline.core.scoring.status import Status
 
 
 def closed_form_position(c_mci_m: np.ndarray, rho_m: np.ndarray, u_body: np.ndarray | None = None

@@ -13,7 +13,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from pipeline.core.measurement import Sigma
+from pipeline.core.estimation.measurement import Sigma
 
 # Largest accepted condition number of a normal matrix after Jacobi (unit-diagonal) scaling. For
 # the unit line-of-sight Gram matrix of the range fit, 1e10 means a weakest direction 1e5 times

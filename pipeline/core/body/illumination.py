@@ -36,9 +36,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from pipeline.core import frames
-from pipeline.core.constants import MOON_RADIUS_M
-from pipeline.core.rotations import cross
+from pipeline.core.math import frames
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.math.rotations import cross
 
 J2000_JD_TDB = 2451545.0
 SECONDS_PER_DAY = 86400.0

@@ -42,9 +42,9 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from pipeline.core.camera import PixelCamera, ray_sphere_distance
-from pipeline.core.conics import ellipse_from_conic
-from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.sensors.camera import PixelCamera, ray_sphere_distance
+from pipeline.core.sensors.conics import ellipse_from_conic
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,12 @@ from typing import Protocol
 
 import numpy as np
 
-from pipeline.core import camera, conics, identification, illumination, measurement, sensor, tiling
+from pipeline.core.body import illumination
+from pipeline.core.estimation import measurement
+from pipeline.core.math import tiling
+from pipeline.core.sensors import camera, conics
+from pipeline.core.sensors import rim_sensor as sensor
+from pipeline.core.vision import identification
 
 _STREAM_TAG = 0xDE7EC7  # separates detection streams from other users of the run seed
 
@@ -49,7 +54,8 @@ class Craters:
 
 @dataclass(frozen=True)
 class PhysicalSensor:
-    """The physical sensor (`pipeline.core.sensor`): pixel camera, detectability, pixel noise,
+    """The physical sensor (`pipeline.core.sensors.rim_sensor`): pixel camera, detectability, pixel
+    noise,
     the bearing and range sources, and the world's differences from the catalogue."""
 
     camera: camera.PixelCamera
@@ -213,7 +219,7 @@ def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.W
                    rngs: dict[str, np.random.Generator], sun_mcmf_m: np.ndarray) -> SensedFrame:
     """The physical sensor's detections of one frame: true rims (the world, not the catalogue)
     imaged as ellipses, detected by size and lighting (draws of rngs["detect"]), measured with
-    pixel noise (rngs["noise"]); no identities (`pipeline.core.sensor`)."""
+    pixel noise (rngs["noise"]); no identities (`pipeline.core.sensors.rim_sensor`)."""
     phys = model.physical
     assert phys is not None
     cam = phys.camera

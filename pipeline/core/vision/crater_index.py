@@ -39,9 +39,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.core import conics
-from pipeline.core.camera import ray_sphere_distance
-from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.sensors import conics
+from pipeline.core.sensors.camera import ray_sphere_distance
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -150,7 +150,7 @@ def detection_cues(conic: np.ndarray, k: np.ndarray, dcm_cam_from_mcmf: np.ndarr
     rim radius / range, R / rho) of image conics (N, 3, 3) (px, undistorted), pinhole K and the
     star-tracker attitude. The rim-plane normal is the vertical at the ground point of the
     ellipse-centre ray from r_guess (0.6 deg off for a 20 km error); then the bias-free bearing
-    and R / rho = 1 / |crater_centres_cam(conic, K, up_cam, 1)| (`pipeline.core.conics`).
+    and R / rho = 1 / |crater_centres_cam(conic, K, up_cam, 1)| (`pipeline.core.sensors.conics`).
     NaN where the conic is not an ellipse or the ray misses the Moon."""
     dcm = np.asarray(dcm_cam_from_mcmf, dtype=float)
     r_guess = np.asarray(r_guess_mcmf_m, dtype=float)

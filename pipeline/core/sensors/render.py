@@ -65,9 +65,9 @@ import numpy as np
 from scipy import fft, ndimage
 from scipy.spatial import cKDTree
 
-from pipeline.core.camera import PixelCamera, ray_sphere_distance
-from pipeline.core.conics import tangent_basis
-from pipeline.core.constants import MOON_RADIUS_M
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.sensors.camera import PixelCamera, ray_sphere_distance
+from pipeline.core.sensors.conics import tangent_basis
 
 SIMPLE_COMPLEX_TRANSITION_M = 15e3  # Pike 1977: simple-to-complex transition diameter, ~15 km
 _SIZE_LADDER = np.unique(np.round(2.0 ** (np.arange(2, 27) / 2.0)).astype(np.int64))  # 2..8192

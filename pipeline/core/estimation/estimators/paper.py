@@ -9,11 +9,11 @@ from typing import ClassVar
 
 import numpy as np
 
-from pipeline.core.estimators.base import Estimator, PoseEstimate, failed
-from pipeline.core.estimators.position import closed_form_position, gauss_newton_position
-from pipeline.core.estimators.quest import quest, quest_position_sensitivity
-from pipeline.core.measurement import line_of_sight, per_crater
-from pipeline.core.status import Status
+from pipeline.core.estimation.estimators.base import Estimator, PoseEstimate, failed
+from pipeline.core.estimation.estimators.position import closed_form_position, gauss_newton_position
+from pipeline.core.estimation.estimators.quest import quest, quest_position_sensitivity
+from pipeline.core.estimation.measurement import line_of_sight, per_crater
+from pipeline.core.scoring.status import Status
 
 
 @dataclass(frozen=True)

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.core.rotations import cross
+from pipeline.core.math.rotations import cross
 
 
 @dataclass(frozen=True)

@@ -37,8 +37,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.special import chdtri
 
-from pipeline.core import conics
-from pipeline.core.rotations import dcm_from_q, q_exp
+from pipeline.core.math.rotations import dcm_from_q, q_exp
+from pipeline.core.sensors import conics
 
 CLUTTER_DENSITY_PX5 = 1e-10
 """Default Bayes weight (px^-5) of "false detection or crater not among the candidates": the

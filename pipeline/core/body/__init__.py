@@ -1,0 +1,1 @@
+"""The Moon as a body: its surface (Surface), illumination, the synthetic catalogue."""

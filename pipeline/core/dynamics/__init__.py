@@ -1,0 +1,1 @@
+"""Equations of motion: the ballistic descent, powered flight with a step API."""

@@ -1,0 +1,1 @@
+"""Pose estimation: the measurement model and the single-frame estimators."""

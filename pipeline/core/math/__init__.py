@@ -1,0 +1,1 @@
+"""Mathematics and reference values: rotations, frames, constants, tiling, random streams."""

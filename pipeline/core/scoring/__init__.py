@@ -1,0 +1,1 @@
+"""Scoring: errors, Euler angles of the error rotation, RMSE windows; statuses."""

@@ -1,0 +1,1 @@
+"""What the sensors see: cameras, rim conics, the rim sensor, rendering, the IMU."""

@@ -1,0 +1,1 @@
+"""Crater vision: detectors in pixels, matching to the catalogue, the crater index."""

@@ -1,0 +1,1 @@
+"""Crater detectors (Detector): rim ellipses from pixels."""
