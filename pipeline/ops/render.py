@@ -40,6 +40,7 @@ from pipeline.core.math import tiling
 from pipeline.core.sensors import camera, conics, render
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.core.sensors.detection import CraterArrays, DetectionModel
+from pipeline.core.vision.detectors import Detections
 from pipeline.core.vision.detectors import classical as crater_detect
 
 DIAM_BINS_PX = (5.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0, np.inf)
@@ -232,8 +233,7 @@ def render_and_detect(model: DetectionModel, craters: CraterArrays, world: senso
     if np.all(np.isfinite(sun_img)):
         det = crater_detect.detect_craters(frame.image, sun_img, opts.detect)
     else:
-        det = crater_detect.Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0),
-                                       np.zeros(0))
+        det = Detections.empty()
     t2 = time.perf_counter()
 
     # truth: the rendered rim crests overlapping the image; counted: wholly inside, big enough

@@ -37,6 +37,7 @@ pointing towards the Sun (`sun_direction_image`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy import ndimage
@@ -45,6 +46,7 @@ from scipy.spatial import cKDTree
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors.camera import PixelCamera, ray_sphere_distance
 from pipeline.core.sensors.conics import ellipse_from_conic
+from pipeline.core.vision.detectors.base import Detections
 
 
 @dataclass(frozen=True)
@@ -63,21 +65,6 @@ class DetectOptions:
     psf_sigma_px: float = 0.5  # the camera's blur, for the curvature correction of the rims
     min_confidence: float = 0.2
     min_axis_ratio: float = 0.5  # semi-minor / semi-major; 0.5 ~ a rim seen 60 deg off-normal
-
-
-@dataclass(frozen=True)
-class Detections:
-    """Detected rims: ellipse centres (N, 2) px, semi-axes (N,) px (a >= b), angle (N,) rad of the
-    major axis from +u towards +v, confidence (N,) in (0, 1]."""
-
-    centre_px: np.ndarray
-    semi_major_px: np.ndarray
-    semi_minor_px: np.ndarray
-    angle_rad: np.ndarray
-    confidence: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.confidence)
 
 
 def sun_direction_image(camera: PixelCamera, r_cam_mcmf_m: np.ndarray,
@@ -321,7 +308,7 @@ def detect_craters(image: np.ndarray, sun_dir_image: np.ndarray,
     dark, bright = _blobs(dark_mask, sun, opts.min_blob_px), _blobs(bright_mask, sun,
                                                                     opts.min_blob_px)
     di, bi, score = _pair(dark, bright, sun, opts)
-    none = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+    none = Detections.empty()
     if di.size == 0:
         return none
     perp = np.array([-sun[1], sun[0]])
@@ -381,3 +368,17 @@ def detect_craters(image: np.ndarray, sun_dir_image: np.ndarray,
             drop[j[dup]] = True
             idx = idx[~drop]
     return Detections(centre[idx], a[idx], b[idx], ang[idx], conf[idx])
+
+
+@dataclass(frozen=True)
+class ClassicalDetector:
+    """The crescent-pairing detector behind the `Detector` interface (it needs the Sun's image
+    direction)."""
+
+    name: ClassVar[str] = "classical"
+    options: DetectOptions = DetectOptions()
+
+    def detect(self, image: np.ndarray, sun_dir_image: np.ndarray | None = None) -> Detections:
+        if sun_dir_image is None:
+            raise ValueError("the classical detector needs the Sun's image direction")
+        return detect_craters(image, sun_dir_image, self.options)

@@ -1,0 +1,86 @@
+"""The Moon's surface as a model: the `Surface` interface and its first implementation, `Sphere`.
+
+A surface is fixed in the body (MCMF, m). It answers three questions, vectorised over points or
+rays (component axis last, `(N, 3)`, or one `(3,)`):
+- `height_m(u)`: the surface's height (m) above the reference sphere at unit directions u from the
+  Moon's centre;
+- `normal(u)`: the outward unit normal there;
+- `intersect(origin, direction)`: the distance (m) along unit rays to the first hit (NaN: none).
+`altitude_m(r)` is a point's height above the surface straight below it (the radial altitude).
+
+Truth and belief stay apart: the world has one surface instance, the navigator's map another
+(equal by default). A new model (a terrain) is a new class with the same methods, registered in
+`SURFACES` under its `kind`, with its options class beside it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, Protocol
+
+import numpy as np
+
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.sensors.camera import ray_sphere_distance
+
+
+class Surface(Protocol):
+    """A body-fixed surface (MCMF, m): heights over the reference sphere, normals, ray hits."""
+
+    kind: ClassVar[str]
+    reference_radius_m: float
+
+    def height_m(self, u_mcmf: np.ndarray) -> np.ndarray:
+        """Height (m) above the reference sphere at unit directions u_mcmf (..., 3)."""
+        ...
+
+    def normal(self, u_mcmf: np.ndarray) -> np.ndarray:
+        """Outward unit normals (..., 3) (MCMF) of the surface at unit directions u_mcmf."""
+        ...
+
+    def intersect(self, origin_mcmf_m: np.ndarray, direction_mcmf: np.ndarray) -> np.ndarray:
+        """Distance (m) along unit rays (..., 3) from origins (..., 3) (MCMF, m) to the first
+        surface point in front of the origin; NaN where the ray misses."""
+        ...
+
+    def altitude_m(self, r_mcmf_m: np.ndarray) -> np.ndarray:
+        """Height (m) of points r_mcmf_m (..., 3) above the surface point below them."""
+        ...
+
+
+@dataclass(frozen=True)
+class SphereOptions:
+    """A sphere of the given radius (m): the paper's Moon."""
+
+    radius_m: float = MOON_RADIUS_M
+
+
+@dataclass(frozen=True)
+class Sphere:
+    """The reference sphere itself (height 0 everywhere): the paper's Moon (Sec. 3.1)."""
+
+    kind: ClassVar[str] = "sphere"
+    reference_radius_m: float = MOON_RADIUS_M
+
+    @classmethod
+    def from_options(cls, opts: SphereOptions) -> Sphere:
+        return cls(opts.radius_m)
+
+    def height_m(self, u_mcmf: np.ndarray) -> np.ndarray:
+        return np.zeros(np.shape(u_mcmf)[:-1])
+
+    def normal(self, u_mcmf: np.ndarray) -> np.ndarray:
+        u = np.asarray(u_mcmf, dtype=float)
+        return u / np.linalg.norm(u, axis=-1, keepdims=True)
+
+    def intersect(self, origin_mcmf_m: np.ndarray, direction_mcmf: np.ndarray) -> np.ndarray:
+        return ray_sphere_distance(np.asarray(origin_mcmf_m, dtype=float),
+                                   np.asarray(direction_mcmf, dtype=float),
+                                   self.reference_radius_m)
+
+    def altitude_m(self, r_mcmf_m: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(np.asarray(r_mcmf_m, dtype=float), axis=-1) - self.reference_radius_m
+
+
+SURFACES: dict[str, type] = {Sphere.kind: Sphere}
+"""The surface models by kind (a new model registers here)."""

@@ -1,0 +1,1 @@
+"""Guidance: laws that turn the navigated state and a target into a thrust command (GuidanceLaw)."""
