@@ -32,7 +32,7 @@ from pipeline.config import load_config
 from pipeline.core.math import frames, tiling
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.io.store import RunStore, now_iso
-from pipeline.io.workspace import workspace
+from pipeline.workspace import workspace
 
 SHARED_LU = workspace().root.parent / "shared" / "data" / "lu1319381_partial.parquet"
 console = Console()

@@ -245,9 +245,9 @@ def compare(
 
     from pipeline.config import validate_run_id
     from pipeline.core.sensors import camera
-    from pipeline.io.workspace import workspace
     from pipeline.ops import compare as cmp
-    from pipeline.viz import report
+    from pipeline.viz.report import compare_report
+    from pipeline.workspace import workspace
 
     series, windows, biases = [], [], []
     for run in runs:
@@ -271,7 +271,7 @@ def compare(
             biases.append(bias)
     folder = workspace().runs_dir / validate_run_id(f"compare-{name or '_'.join(runs)}")
     folder.mkdir(parents=True, exist_ok=True)
-    path = report.write_compare_report(folder, pl.concat(series, how="diagonal"),
+    path = compare_report.write_compare_report(folder, pl.concat(series, how="diagonal"),
                                        pl.concat(windows, how="diagonal"),
                                        pl.concat(biases) if biases else None)
     typer.echo(f"wrote {path} and its figures (fig_visible.png, fig_used.png, fig_errors.png"

@@ -15,8 +15,8 @@ import rerun as rr
 from pipeline.config import RunConfig, load_config
 from pipeline.engine.executor import Executor
 from pipeline.io.store import RunStore
-from pipeline.io.workspace import workspace
 from pipeline.stages import DAG, ingest
+from pipeline.workspace import workspace
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"

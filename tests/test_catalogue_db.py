@@ -19,7 +19,7 @@ from conftest import REPO, query, shared_file
 
 from pipeline.errors import CatalogueError
 from pipeline.io import catalogue_db as cat
-from pipeline.io.workspace import Workspace
+from pipeline.workspace import Workspace
 
 R_M = 1_737_400.0
 

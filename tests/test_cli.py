@@ -21,7 +21,7 @@ from pipeline import bench, cli
 from pipeline.cli import app
 from pipeline.errors import PipelineError
 from pipeline.io.store import RunStore
-from pipeline.io.workspace import workspace
+from pipeline.workspace import workspace
 
 COMMANDS = {"run", "ingest", "trajectory", "imu", "render", "detect", "estimate", "navigate",
             "score", "sweep", "campaign", "compare", "sql", "view", "stages", "bench"}

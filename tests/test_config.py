@@ -14,7 +14,6 @@ import pytest
 from conftest import REPO
 
 from pipeline.config import (
-    MAX_FRAMES,
     ConfigError,
     RunConfig,
     config_hash,
@@ -24,7 +23,8 @@ from pipeline.config import (
     to_dict,
     validate_run_id,
 )
-from pipeline.io.workspace import workspace
+from pipeline.config.checks import MAX_FRAMES
+from pipeline.workspace import workspace
 
 
 def write_scenario(name: str, text: str) -> Path:

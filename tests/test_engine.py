@@ -253,7 +253,7 @@ def test_an_operation_edit_rekeys_its_stages_and_their_downstream(monkeypatch):
 
 
 @pytest.mark.parametrize("module", ["pipeline.io.store", "pipeline.engine.executor",
-                                    "pipeline.io.workspace"])
+                                    "pipeline.workspace"])
 def test_framework_edits_rekey_nothing(monkeypatch, module):
     code0, code1, key0, key1 = hashes_with_edit(monkeypatch, module)
     assert code0 == code1 and key0 == key1

@@ -23,7 +23,7 @@ from pipeline.cli import app
 from pipeline.io import sqlshell
 from pipeline.io.sqlshell import SqlError, SqlRefused, SqlSessionError, SqlTimeout
 from pipeline.io.store import RunStore
-from pipeline.io.workspace import Workspace, workspace
+from pipeline.workspace import Workspace, workspace
 
 CRATERS = {"default": [(1, 10.0, 0.5, 23.5, 1234), (2, 2.5, -1.0, 24.0, 1234),
                        (3, 40.0, 5.0, 100.0, 77)],

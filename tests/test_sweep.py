@@ -23,9 +23,9 @@ from pipeline.campaign.results import TIMING_COLUMNS
 from pipeline.campaign.sweep import sweep_spec, write_sweep
 from pipeline.config import RunConfig, load_config
 from pipeline.io.store import RunStore
-from pipeline.io.workspace import workspace
 from pipeline.studies import suslu2025
-from pipeline.viz import recording
+from pipeline.viz.rerun import base
+from pipeline.workspace import workspace
 
 PAPER = REPO.parent / "shared" / "paper" / "visual-pose-estimation-moon-landing.md"
 SWEEP_ID = "sw"
@@ -270,8 +270,8 @@ def test_report_and_figures_7_8(sweep):
 def test_sweep_recording_holds_a_series_per_method_and_cap(sweep):
     path = sweep.out / "sweep.rrd"
     [entry] = rr.chunk.RrdReader(path).recordings()
-    assert (entry.application_id, entry.recording_id) == (recording.APP_ID,
-                                                          recording.recording_id(SWEEP_ID))
+    assert (entry.application_id, entry.recording_id) == (base.APP_ID,
+                                                          base.recording_id(SWEEP_ID))
     chunks = rr.chunk.RrdReader(path).stream().collect()
     first = sweep.read("sweep_scores").filter(pl.col("seed") == SEEDS[0])
     for method in METHODS:

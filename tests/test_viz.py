@@ -16,8 +16,11 @@ import rerun as rr
 from scipy.stats import chi2
 
 from pipeline.io.catalogue_db import build_catalogue
+from pipeline.ops.score import by_craters_used
 from pipeline.studies import suslu2025
-from pipeline.viz import recording, report, viewer
+from pipeline.viz import viewer
+from pipeline.viz.report import figures, md_tables, run_report
+from pipeline.viz.rerun import base, estimation, layout, trajectory, world
 from pipeline.vocab import METHODS, QUANTITIES, STATE_DIM, STATUS_CODES
 
 R_MOON = 1_737_400.0
@@ -85,7 +88,7 @@ def tables():
 
 
 def log_trajectory(rec, traj) -> None:
-    recording.log_trajectory(
+    trajectory.log_trajectory(
         rec, traj["frame"].to_numpy(), traj["t_s"].to_numpy(),
         np.stack([traj[f"r_mci_{c}_m"].to_numpy() for c in "xyz"], 1),
         np.stack([traj[f"v_mci_{c}_m_s"].to_numpy() for c in "xyz"], 1),
@@ -110,7 +113,7 @@ def series(cols: dict[str, list], entity: str) -> np.ndarray:
 def test_trajectory_plots_altitude_and_speed_apart(tmp_path, tables):
     traj = tables[0]
     path = tmp_path / "trajectory.rrd"
-    with recording.recording("r", path) as rec:
+    with layout.recording("r", path) as rec:
         log_trajectory(rec, traj)
     cols = columns(path, "/trajectory/**")
     np.testing.assert_allclose(series(cols, "/trajectory/altitude_km"),
@@ -121,8 +124,8 @@ def test_trajectory_plots_altitude_and_speed_apart(tmp_path, tables):
     assert all(len(s) <= 3 for s in labels["/world/spacecraft/axes:Arrows3D:labels"][0])
     # the 3D view's chase frame and the body axes shrink with the altitude
     expected = np.maximum(traj["altitude_m"].to_numpy(), 2e3) / 150e3
-    np.testing.assert_allclose(recording.chase_scale(traj["altitude_m"].to_numpy()), expected)
-    for entity in (recording.CHASE_ENTITY, "/world/spacecraft/axes"):
+    np.testing.assert_allclose(world.chase_scale(traj["altitude_m"].to_numpy()), expected)
+    for entity in (world.CHASE_ENTITY, "/world/spacecraft/axes"):
         scale = columns(path, entity)[f"{entity}:Transform3D:scale"]
         np.testing.assert_allclose([v[0] for v in scale], expected[:, None] * np.ones(3))
 
@@ -130,8 +133,8 @@ def test_trajectory_plots_altitude_and_speed_apart(tmp_path, tables):
 def test_estimation_status_iterations_and_solve_time_are_separate_series(tmp_path, tables):
     traj, est, _ = tables
     path = tmp_path / "estimation.rrd"
-    with recording.recording("r", path) as rec:
-        recording.log_estimation(rec, est, pl.DataFrame(
+    with layout.recording("r", path) as rec:
+        estimation.log_estimation(rec, est, pl.DataFrame(
             schema={"frame": pl.Int32, "det_index": pl.Int32, "c_mci_x_m": pl.Float64,
                     "c_mci_y_m": pl.Float64, "c_mci_z_m": pl.Float64, "diam_km": pl.Float64}),
             traj)
@@ -157,17 +160,17 @@ def test_estimation_status_iterations_and_solve_time_are_separate_series(tmp_pat
 
 def test_covariance_ellipsoids_shrink_with_altitude(tmp_path, tables):
     traj, est, _ = tables
-    np.testing.assert_allclose(recording.covariance_scale([300e3, 100e3, 10e3, 1e3, 50.0]),
+    np.testing.assert_allclose(estimation.covariance_scale([300e3, 100e3, 10e3, 1e3, 50.0]),
                                [1000.0, 1000.0, 100.0, 10.0, 1.0])
     path = tmp_path / "estimation.rrd"
-    with recording.recording("r", path) as rec:
-        recording.log_estimation(rec, est.filter(pl.col("method") == "paper"), pl.DataFrame(
+    with layout.recording("r", path) as rec:
+        estimation.log_estimation(rec, est.filter(pl.col("method") == "paper"), pl.DataFrame(
             schema={"frame": pl.Int32, "det_index": pl.Int32, "c_mci_x_m": pl.Float64,
                     "c_mci_y_m": pl.Float64, "c_mci_z_m": pl.Float64, "diam_km": pl.Float64}),
             traj)
     cols = columns(path, "/world/estimate_cov/paper")
     ok = est.filter((pl.col("method") == "paper") & (pl.col("status") == "ok"))
-    scale = recording.covariance_scale(traj["altitude_m"].to_numpy()[ok["frame"].to_numpy()])
+    scale = estimation.covariance_scale(traj["altitude_m"].to_numpy()[ok["frame"].to_numpy()])
     half = np.array([np.sort(np.array(v[0])) for v in
                      cols["/world/estimate_cov/paper:Ellipsoids3D:half_sizes"]])
     sigma = np.sqrt(np.array([[4.0, 9.0, 16.0]]) * (1 + ok["frame"].to_numpy()[:, None]))
@@ -177,8 +180,8 @@ def test_covariance_ellipsoids_shrink_with_altitude(tmp_path, tables):
 def test_scoring_has_errors_and_nees_with_its_reference_lines(tmp_path, tables):
     scores = tables[2]
     path = tmp_path / "scoring.rrd"
-    with recording.recording("r", path) as rec:
-        recording.log_scoring(rec, scores)
+    with layout.recording("r", path) as rec:
+        estimation.log_scoring(rec, scores)
     cols = columns(path, "/consistency/**")
     assert cols["frame"] == list(range(N))
     lo, hi = chi2.ppf([0.025, 0.975], STATE_DIM)
@@ -198,7 +201,7 @@ def test_scoring_has_errors_and_nees_with_its_reference_lines(tmp_path, tables):
 def test_error_ranges_follow_the_data_not_a_fixed_zoom(tables):
     scores = tables[2]
     big = scores.with_columns(pl.col("err_y_m") * 150.0)  # a real catalogue's 30-400 m errors
-    r = recording.error_ranges(big)
+    r = estimation.error_ranges(big)
     p99 = np.nanpercentile(np.abs(big["err_y_m"].to_numpy()), 99)
     assert r["y_m"] == pytest.approx((-1.5 * p99, 1.5 * p99))
     assert r["y_m"][1] > 100.0 > r["x_m"][1]
@@ -210,11 +213,11 @@ def test_catalogue_recording_is_static_with_its_own_recording_id(tmp_path):
     xyz *= R_MOON / np.linalg.norm(xyz, axis=1, keepdims=True)
     diam = rng.uniform(1, 50, 500)
     db = tmp_path / "catalogue" / "craters.duckdb"
-    path = recording.log_catalogue(recording.catalogue_recording_path(db), xyz, diam, "craters")
+    path = world.log_catalogue(base.catalogue_recording_path(db), xyz, diam, "craters")
     assert path == tmp_path / "catalogue" / "craters.rrd"
     [entry] = rr.chunk.RrdReader(path).recordings()
-    assert entry.application_id == recording.APP_ID
-    assert entry.recording_id == recording.catalogue_recording_id("craters")
+    assert entry.application_id == base.APP_ID
+    assert entry.recording_id == base.catalogue_recording_id("craters")
     assert not list(tmp_path.glob("catalogue/.tmp-*"))
     static = columns(path, "/world/moon/**", index=None)
     points = np.array(static["/world/moon/craters:Points3D:positions"][0])
@@ -251,7 +254,7 @@ def views(cols: dict[str, list]) -> dict[str, dict[str, object]]:
 
 def test_layout_has_one_unit_per_plot_and_the_eye_on_the_spacecraft(tmp_path):
     path = tmp_path / "layout.rbl"
-    recording.blueprint().save(recording.APP_ID, path)
+    layout.blueprint().save(base.APP_ID, path)
     cols = blueprint_columns(path)
     by_name = {v["name"][0]: v for v in views(cols).values()}
     for name, contents in (("altitude (km)", ["/trajectory/altitude_km"]),
@@ -263,18 +266,18 @@ def test_layout_has_one_unit_per_plot_and_the_eye_on_the_spacecraft(tmp_path):
         assert by_name[name]["contents"] == contents, name
     assert "/counts/candidates" not in by_name["craters per frame"]["contents"]
     three_d = by_name["3D: spacecraft and footprint (body frame)"]
-    assert three_d["origin"] == [recording.CHASE_ENTITY]
+    assert three_d["origin"] == [world.CHASE_ENTITY]
     assert three_d["contents"] == ["/world/**", "- /world/spacecraft/camera/**"]
     eye = {k.rsplit(":", 1)[1]: v[0] for k, v in cols.items() if ":EyeControls3D:" in k}
-    assert eye["position"] == [list(recording.EYE_POSITION_BODY_M)]
-    assert eye["look_target"] == [list(recording.EYE_TARGET_BODY_M)]
+    assert eye["position"] == [list(layout.EYE_POSITION_BODY_M)]
+    assert eye["look_target"] == [list(layout.EYE_TARGET_BODY_M)]
     assert eye["eye_up"] == [[0.0, 0.0, -1.0]]
 
 
 def test_layout_with_data_ranges_fixes_the_error_axes(tmp_path, tables):
-    ranges = recording.error_ranges(tables[2])
+    ranges = estimation.error_ranges(tables[2])
     path = tmp_path / "layout.rbl"
-    recording.blueprint(ranges).save(recording.APP_ID, path)
+    layout.blueprint(ranges).save(base.APP_ID, path)
     cols = blueprint_columns(path)
     got = sorted(tuple(v[0][0]) for k, v in cols.items() if k.endswith("ScalarAxis:range"))
     for q in QUANTITIES:
@@ -300,7 +303,7 @@ def test_by_craters_used_on_a_hand_made_table():
         **{f"crlb_{q.name}": [nan, 2.0, 2.0, 1.0, 0.1, 0.1, 2.0, 1.0] for q in QUANTITIES},
         **{f"sigma_{q.name}": [nan, 2.0, 2.0, 1.0, 0.1, 0.1, 2.0, 1.0] for q in QUANTITIES},
         "nees": [nan, 5.0, 7.0, 6.0, 4.0, 8.0, 3.0, 9.0]})
-    t = report.by_craters_used(scores).filter(pl.col("quantity") == "x_m")
+    t = by_craters_used(scores).filter(pl.col("quantity") == "x_m")
     rows = {(r["method"], r["craters"]): r for r in t.iter_rows(named=True)}
     assert list(rows) == [("paper", "0-2"), ("paper", "3-5"), ("paper", "6-10"),
                           ("paper", ">200"), ("joint", "3-5"), ("joint", "6-10")]
@@ -320,20 +323,20 @@ def test_by_craters_used_on_a_hand_made_table():
     assert r["median_abs"] == pytest.approx(0.2)
     assert r["ratio_to_crlb"] == pytest.approx(np.sqrt(0.05) / 0.1)
     assert rows[("joint", "6-10")]["rmse"] == pytest.approx(2.0)
-    md = report.craters_used_table(report.by_craters_used(scores))
+    md = md_tables.craters_used_table(by_craters_used(scores))
     assert "| paper | 3-5 | 2 | 2 | 3.54 / 3.5 (1.77) |" in md
     assert "| paper | 0-2 | 1 | 0 | - |" in md
 
 
 def test_report_figures_of_craters_used_and_counts(tmp_path, tables):
     scores = tables[2]
-    report.fig_craters_used(report.by_craters_used(scores), tmp_path / "f.png", "t")
+    figures.fig_craters_used(by_craters_used(scores), tmp_path / "f.png", "t")
     assert (tmp_path / "f.png").read_bytes()[:4] == b"\x89PNG"
     frames = pl.DataFrame({"t_s": np.arange(0, 3000, 100.0), "n_visible": np.arange(30) * 20,
                            "n_identified": np.arange(30) * 17, "n_used": np.arange(30) * 15,
                            "altitude_km": np.linspace(300, 0, 30)})
-    report.fig_counts(frames, tmp_path / "c.png", "t")
-    facts = report.count_facts(frames)
+    figures.fig_counts(frames, tmp_path / "c.png", "t")
+    facts = run_report.count_facts(frames)
     assert "paper: < 150 before 1,500 s" in facts and "max visible craters in start-1,500 s: 280" \
         in facts
 
@@ -360,7 +363,7 @@ def write_run(root: Path, tables, run: str = "r") -> tuple[Path, Path]:
     rng = np.random.default_rng(0)
     xyz = rng.normal(size=(20_000, 3))
     xyz *= R_MOON / np.linalg.norm(xyz, axis=1, keepdims=True)
-    cat = recording.log_catalogue(root / "catalogue" / "craters.rrd", xyz,
+    cat = world.log_catalogue(root / "catalogue" / "craters.rrd", xyz,
                                   rng.uniform(1, 30, len(xyz)), "craters")
     db = root / "catalogue" / "craters.duckdb"
     build_catalogue("synthetic", db_path=db, key="catalogue-key", min_diam_km=100.0)
@@ -371,12 +374,12 @@ def write_run(root: Path, tables, run: str = "r") -> tuple[Path, Path]:
             {"db_path": str(db), "key": "catalogue-key", "recording": str(cat)}))
         tx.commit()
         tx = store.begin("trajectory", "k", {}, "c", "h")
-        with recording.recording(run, tx.output("trajectory.rrd")) as rec:
+        with layout.recording(run, tx.output("trajectory.rrd")) as rec:
             log_trajectory(rec, traj)
         tx.commit()
         tx = store.begin("score", "k", {}, "c", "h")
-        with recording.recording(run, tx.output("scoring.rrd")) as rec:
-            recording.log_scoring(rec, scores)
+        with layout.recording(run, tx.output("scoring.rrd")) as rec:
+            estimation.log_scoring(rec, scores)
         tx.commit()
     return store.run_dir, cat
 

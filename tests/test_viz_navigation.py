@@ -15,7 +15,7 @@ import rerun as rr
 from scipy.stats import chi2
 from test_viz import blueprint_columns, columns, series, views
 
-from pipeline.viz import recording
+from pipeline.viz.rerun import base, estimation, grid, inertial, layout, navigation, world
 
 R_MOON = 1_737_400.0
 N = 30  # record times: 1 per 0.5 s, a frame every second
@@ -129,8 +129,8 @@ def seconds(cols: dict[str, list]) -> np.ndarray:
 def nav_rrd(tmp_path_factory) -> tuple[Path, pl.DataFrame]:
     nav = navigation_table()
     path = tmp_path_factory.mktemp("nav") / "navigation.rrd"
-    with recording.recording("r", path, layout=recording.blueprint()) as rec:
-        recording.log_navigation(rec, nav)
+    with layout.recording("r", path, layout=layout.blueprint()) as rec:
+        navigation.log_navigation(rec, nav)
     return path, nav
 
 
@@ -241,7 +241,7 @@ def test_paths_pose_and_scaled_ellipsoids_in_the_3d_view(nav_rrd):
 
     cols = read(path, "/world/estimate_cov/filter")
     np.testing.assert_allclose(seconds(cols), nav["t_s"].to_numpy()[NOT_INIT:])
-    scale = recording.covariance_scale(nav["altitude_m"].to_numpy()[NOT_INIT:])
+    scale = estimation.covariance_scale(nav["altitude_m"].to_numpy()[NOT_INIT:])
     half = np.array([np.sort(v[0]) for v in
                      cols["/world/estimate_cov/filter:Ellipsoids3D:half_sizes"]])
     np.testing.assert_allclose(half, 3 * np.array([1.0, 2.0, 3.0]) * scale[:, None], rtol=1e-6)
@@ -255,8 +255,8 @@ def test_paths_pose_and_scaled_ellipsoids_in_the_3d_view(nav_rrd):
 
 def test_no_smoother_series_without_the_smoother(tmp_path):
     path = tmp_path / "n.rrd"
-    with recording.recording("r", path) as rec:
-        recording.log_navigation(rec, navigation_table(smoothed=False), true_path=False)
+    with layout.recording("r", path) as rec:
+        navigation.log_navigation(rec, navigation_table(smoothed=False), true_path=False)
     cols = read(path, "/navigation/errors/position_m/x/**")
     assert not [c for c in cols if "smoother" in c]
     assert "/world/path:LineStrips3D:strips" not in read(path, "/world/**", index=None)
@@ -268,8 +268,8 @@ def test_no_smoother_series_without_the_smoother(tmp_path):
 def test_imu_biases_altimeter_and_body_rate_in_their_units(tmp_path):
     truth, altimeter, imu, frames = sensor_tables()
     path = tmp_path / "imu.rrd"
-    with recording.recording("r", path) as rec:
-        recording.log_imu(rec, truth, altimeter, imu, imu_rate_hz=100.0, frames=frames)
+    with layout.recording("r", path) as rec:
+        inertial.log_imu(rec, truth, altimeter, imu, imu_rate_hz=100.0, frames=frames)
     cols = read(path, "/imu/**")
     np.testing.assert_allclose(series(cols, "/imu/true_bias/gyro_deg_h/y"), -2e-6 / DEG_H)
     np.testing.assert_allclose(series(cols, "/imu/true_bias/accel_milli_g/x"), 1e-3 / MILLI_G)
@@ -295,9 +295,9 @@ def test_imu_biases_altimeter_and_body_rate_in_their_units(tmp_path):
 
 def test_frames_at_matches_times_within_a_microsecond():
     frames = pl.DataFrame({"frame": [3, 1, 2], "t_s": [3.0, 1.0, 2.0]})
-    got = recording.frames_at(np.array([0.0, 1.0, 1.5, 2.0 + 1e-9, 3.0, 4.0]), frames)
+    got = grid.frames_at(np.array([0.0, 1.0, 1.5, 2.0 + 1e-9, 3.0, 4.0]), frames)
     np.testing.assert_array_equal(got, [-1, 1, -1, 2, 3, -1])
-    np.testing.assert_array_equal(recording.frames_at(np.array([1.0])), [-1])
+    np.testing.assert_array_equal(grid.frames_at(np.array([1.0])), [-1])
 
 
 # --- layout -------------------------------------------------------------------------------------
@@ -305,7 +305,7 @@ def test_frames_at_matches_times_within_a_microsecond():
 
 def test_navigation_layout_has_its_views(tmp_path):
     path = tmp_path / "layout.rbl"
-    recording.blueprint().save(recording.APP_ID, path)
+    layout.blueprint().save(base.APP_ID, path)
     origin = {v["name"][0]: v["origin"][0] for v in views(blueprint_columns(path)).values()
               if "name" in v and "origin" in v}
     assert origin["position error MCI x (m)"] == "/navigation/errors/position_m/x"
@@ -316,4 +316,4 @@ def test_navigation_layout_has_its_views(tmp_path):
     assert origin["accelerometer bias: estimate vs true (milli-g)"] == \
         "/navigation/bias/accel_milli_g"
     assert origin["altimeter slant range (km)"] == "/altimeter/slant_range_km"
-    assert origin["3D: spacecraft and footprint (body frame)"] == recording.CHASE_ENTITY
+    assert origin["3D: spacecraft and footprint (body frame)"] == world.CHASE_ENTITY

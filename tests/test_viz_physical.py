@@ -18,7 +18,7 @@ from test_viz import blueprint_columns, columns, views
 from pipeline.core.math import rotations
 from pipeline.core.sensors import camera, conics
 from pipeline.core.sensors.detection import DetectionModel
-from pipeline.viz import recording
+from pipeline.viz.rerun import base, detection, ellipses, layout, sun
 from pipeline.vocab import COUNT_COLORS
 
 R_MOON = 1_737_400.0
@@ -137,8 +137,8 @@ def frames_table(detections: pl.DataFrame, sun: bool) -> pl.DataFrame:
 
 def write(path: Path, physical: bool) -> Path:
     det = detections_table(physical)
-    with recording.recording("r", path) as rec:
-        recording.log_detection(rec, model(), trajectory_table(), det,
+    with layout.recording("r", path) as rec:
+        detection.log_detection(rec, model(), trajectory_table(), det,
                                 frames_table(det, sun=physical))
     return path
 
@@ -172,31 +172,31 @@ OLD_ENTITIES = {CAM, f"{CAM}/visible", f"{CAM}/used", "/world/frustum", "/world/
                 "/world/moon/visible", "/world/moon/used", "/world/moon/false_matches",
                 "/counts/candidates", "/counts/visible", "/counts/identified", "/counts/used",
                 "/detection/d_min_km"}
-NEW_ENTITIES = {recording.SUN_ENTITY, recording.SUNLIGHT_ENTITY,
-                f"{recording.SUNLIGHT_ENTITY}/day_side", f"{recording.SUNLIGHT_ENTITY}/terminator",
-                recording.SUN_ELEVATION_ENTITY, recording.GSD_ENTITY,
-                f"{recording.ELLIPSES_ENTITY}/measured", f"{recording.ELLIPSES_ENTITY}/true"}
+NEW_ENTITIES = {sun.SUN_ENTITY, sun.SUNLIGHT_ENTITY,
+                f"{sun.SUNLIGHT_ENTITY}/day_side", f"{sun.SUNLIGHT_ENTITY}/terminator",
+                sun.SUN_ELEVATION_ENTITY, sun.GSD_ENTITY,
+                f"{ellipses.ELLIPSES_ENTITY}/measured", f"{ellipses.ELLIPSES_ENTITY}/true"}
 
 
 # --- the Sun ------------------------------------------------------------------------------------
 
 
 def test_sun_arrow_points_from_the_moon_centre_to_the_sun_per_frame(physical_rrd):
-    cols = columns(physical_rrd, recording.SUN_ENTITY)
+    cols = columns(physical_rrd, sun.SUN_ENTITY)
     assert cols["frame"] == list(range(F))
-    vectors = np.array([v[0] for v in cols[f"{recording.SUN_ENTITY}:Arrows3D:vectors"]])
-    np.testing.assert_allclose(vectors / recording.SUN_ARROW_LENGTH_M, sun_directions(),
+    vectors = np.array([v[0] for v in cols[f"{sun.SUN_ENTITY}:Arrows3D:vectors"]])
+    np.testing.assert_allclose(vectors / sun.SUN_ARROW_LENGTH_M, sun_directions(),
                                atol=1e-6)
     # on the line from the Moon's centre, from where it leaves the surface (the subsolar point)
-    origins = np.array([v[0] for v in cols[f"{recording.SUN_ENTITY}:Arrows3D:origins"]])
-    np.testing.assert_allclose(origins / (R_MOON + recording.SUNLIGHT_LIFT_M), sun_directions(),
+    origins = np.array([v[0] for v in cols[f"{sun.SUN_ENTITY}:Arrows3D:origins"]])
+    np.testing.assert_allclose(origins / (R_MOON + sun.SUNLIGHT_LIFT_M), sun_directions(),
                                atol=1e-6)
-    static = columns(physical_rrd, recording.SUN_ENTITY, index=None)
-    assert static[f"{recording.SUN_ENTITY}:Arrows3D:labels"] == [["Sun"]]
+    static = columns(physical_rrd, sun.SUN_ENTITY, index=None)
+    assert static[f"{sun.SUN_ENTITY}:Arrows3D:labels"] == [["Sun"]]
 
 
 def test_lit_side_turns_with_the_sun(physical_rrd):
-    base = recording.SUNLIGHT_ENTITY
+    base = sun.SUNLIGHT_ENTITY
     cols = columns(physical_rrd, base)
     q = np.array([v[0] for v in cols[f"{base}:Transform3D:quaternion"]])
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, rtol=1e-6)
@@ -204,9 +204,9 @@ def test_lit_side_turns_with_the_sun(physical_rrd):
     np.testing.assert_allclose(rotations.dcm_from_q(q)[:, :, 2], sun_directions(), atol=1e-6)
     static = columns(physical_rrd, f"{base}/**", index=None)
     day = np.array(static[f"{base}/day_side:Points3D:positions"][0])
-    assert len(day) == recording.DAY_SIDE_POINTS
+    assert len(day) == sun.DAY_SIDE_POINTS
     r = np.linalg.norm(day, axis=1)
-    np.testing.assert_allclose(r, R_MOON + recording.SUNLIGHT_LIFT_M, rtol=1e-6)
+    np.testing.assert_allclose(r, R_MOON + sun.SUNLIGHT_LIFT_M, rtol=1e-6)
     assert (day[:, 2] > 0).all()  # the lit hemisphere only
     colors = np.array(static[f"{base}/day_side:Points3D:colors"][0], dtype=np.int64)
     red = colors >> 24
@@ -214,20 +214,20 @@ def test_lit_side_turns_with_the_sun(physical_rrd):
     ring = np.array(static[f"{base}/terminator:LineStrips3D:strips"][0][0])
     np.testing.assert_allclose(ring[:, 2], 0.0, atol=1e-6)
     np.testing.assert_allclose(np.hypot(ring[:, 0], ring[:, 1]),
-                               R_MOON + recording.SUNLIGHT_LIFT_M, rtol=1e-6)
+                               R_MOON + sun.SUNLIGHT_LIFT_M, rtol=1e-6)
 
 
 def test_sun_elevation_and_ground_sample_distance_series(physical_rrd):
     cols = columns(physical_rrd, "/trajectory/**")
     assert cols["frame"] == list(range(F))
-    for entity, expected in ((recording.SUN_ELEVATION_ENTITY, SUN_ELEVATION_DEG),
-                             (recording.GSD_ENTITY, GSD_M)):
+    for entity, expected in ((sun.SUN_ELEVATION_ENTITY, SUN_ELEVATION_DEG),
+                             (sun.GSD_ENTITY, GSD_M)):
         got = np.array([v[0] for v in cols[f"{entity}:Scalars:scalars"]])
         np.testing.assert_allclose(got, expected)
     names = columns(physical_rrd, "/trajectory/**", index=None)
-    assert names[f"{recording.SUN_ELEVATION_ENTITY}:SeriesLines:names"] == [
+    assert names[f"{sun.SUN_ELEVATION_ENTITY}:SeriesLines:names"] == [
         ["Sun elevation at the sub-spacecraft point (deg)"]]
-    assert names[f"{recording.GSD_ENTITY}:SeriesLines:names"] == [
+    assert names[f"{sun.GSD_ENTITY}:SeriesLines:names"] == [
         ["ground sample distance at nadir (m/px)"]]
 
 
@@ -235,7 +235,7 @@ def test_sun_elevation_and_ground_sample_distance_series(physical_rrd):
 
 
 def test_measured_ellipses_per_frame_in_their_state_colour(physical_rrd):
-    entity = f"{recording.ELLIPSES_ENTITY}/measured"
+    entity = f"{ellipses.ELLIPSES_ENTITY}/measured"
     cols = columns(physical_rrd, entity)
     assert cols["frame"] == list(range(F))
     strips = cols[f"{entity}:LineStrips2D:strips"]
@@ -243,11 +243,11 @@ def test_measured_ellipses_per_frame_in_their_state_colour(physical_rrd):
     finite[6] = False  # its measured ellipse is NaN: left out
     frame_of = np.repeat(np.arange(F), COUNTS)
     assert [len(s) for s in strips] == np.bincount(frame_of[finite], minlength=F).tolist()
-    expected = [rgba(recording.ELLIPSE_STATE_COLORS[s]) for s, ok in zip(STATE, finite,
+    expected = [rgba(ellipses.ELLIPSE_STATE_COLORS[s]) for s, ok in zip(STATE, finite,
                                                                              strict=True) if ok]
     got = [c for frame_colors in cols[f"{entity}:LineStrips2D:colors"] for c in frame_colors]
     assert got == expected
-    assert recording.ELLIPSE_STATE_COLORS == {
+    assert ellipses.ELLIPSE_STATE_COLORS == {
         "false_match": COUNT_COLORS["false_match"], "used": COUNT_COLORS["used"],
         "identified": COUNT_COLORS["identified"], "detected": COUNT_COLORS["visible"]}
     # each strip is a closed polygon on its ellipse
@@ -257,7 +257,7 @@ def test_measured_ellipses_per_frame_in_their_state_colour(physical_rrd):
         det["semi_major_px"].to_numpy(), det["semi_minor_px"].to_numpy(),
         det["ellipse_angle_rad"].to_numpy())
     polygons = [np.array(s) for frame_strips in strips for s in frame_strips]
-    segments = recording.ellipse_segments(det["semi_major_px"].to_numpy())
+    segments = ellipses.ellipse_segments(det["semi_major_px"].to_numpy())
     for poly, c, n, a in zip(polygons, conic, segments, det["semi_major_px"], strict=True):
         assert len(poly) == n + 1
         np.testing.assert_array_equal(poly[0], poly[-1])
@@ -269,15 +269,15 @@ def test_measured_ellipses_per_frame_in_their_state_colour(physical_rrd):
 
 
 def test_true_ellipses_are_grey_and_thin_under_the_measured_ones(physical_rrd):
-    entity = f"{recording.ELLIPSES_ENTITY}/true"
+    entity = f"{ellipses.ELLIPSES_ENTITY}/true"
     cols = columns(physical_rrd, entity)
     assert [len(s) for s in cols[f"{entity}:LineStrips2D:strips"]] == COUNTS  # under the cap
-    static = columns(physical_rrd, f"{recording.ELLIPSES_ENTITY}/**", index=None)
-    assert static[f"{entity}:LineStrips2D:colors"] == [[rgba(recording.TRUE_ELLIPSE_COLOR)]]
-    thin, thick = (static[f"{recording.ELLIPSES_ENTITY}/{k}:LineStrips2D:radii"][0][0]
+    static = columns(physical_rrd, f"{ellipses.ELLIPSES_ENTITY}/**", index=None)
+    assert static[f"{entity}:LineStrips2D:colors"] == [[rgba(ellipses.TRUE_ELLIPSE_COLOR)]]
+    thin, thick = (static[f"{ellipses.ELLIPSES_ENTITY}/{k}:LineStrips2D:radii"][0][0]
                    for k in ("true", "measured"))
     assert thin < 0 and thick < 0 and abs(thin) < abs(thick)  # UI points
-    order = {k: static[f"{recording.ELLIPSES_ENTITY}/{k}:LineStrips2D:draw_order"][0][0]
+    order = {k: static[f"{ellipses.ELLIPSES_ENTITY}/{k}:LineStrips2D:draw_order"][0][0]
              for k in ("true", "measured")}
     assert order["true"] < order["measured"]
 
@@ -285,9 +285,9 @@ def test_true_ellipses_are_grey_and_thin_under_the_measured_ones(physical_rrd):
 def test_true_ellipses_keep_the_largest_per_frame(tmp_path):
     det = detections_table(True)
     path = tmp_path / "capped.rrd"
-    with recording.recording("r", path) as rec:
-        recording.log_rim_ellipses(rec, det, frames_table(det, sun=True), true_per_frame=2)
-    entity = f"{recording.ELLIPSES_ENTITY}/true"
+    with layout.recording("r", path) as rec:
+        ellipses.log_rim_ellipses(rec, det, frames_table(det, sun=True), true_per_frame=2)
+    entity = f"{ellipses.ELLIPSES_ENTITY}/true"
     strips = columns(path, entity)[f"{entity}:LineStrips2D:strips"]
     assert [len(s) for s in strips] == [2, 0, 2, 2]
     # frame 2's two largest: a = 100 and 60 px (detections 7 and 3); a polygon's vertices
@@ -298,24 +298,24 @@ def test_true_ellipses_keep_the_largest_per_frame(tmp_path):
 
 
 def test_ellipses_sent_in_several_batches_are_the_same(tmp_path, physical_rrd, monkeypatch):
-    monkeypatch.setattr(recording, "STRIP_POINTS_PER_SEND", 40)  # a frame or two per send
+    monkeypatch.setattr(ellipses, "STRIP_POINTS_PER_SEND", 40)  # a frame or two per send
     det = detections_table(True)
     path = tmp_path / "batches.rrd"
-    with recording.recording("r", path) as rec:
-        recording.log_rim_ellipses(rec, det, frames_table(det, sun=True))
+    with layout.recording("r", path) as rec:
+        ellipses.log_rim_ellipses(rec, det, frames_table(det, sun=True))
     for kind in ("measured", "true"):
-        entity = f"{recording.ELLIPSES_ENTITY}/{kind}"
+        entity = f"{ellipses.ELLIPSES_ENTITY}/{kind}"
         assert columns(path, entity) == columns(physical_rrd, entity)
 
 
 def test_fewer_segments_for_small_ellipses():
-    n = recording.ellipse_segments(np.array([0.0, 3.0, 7.0, 20.0, 60.0, 1e4, np.nan]))
-    assert n.tolist()[0] == n.tolist()[1] == recording.ELLIPSE_SEGMENTS[0]
-    assert n[-2] == recording.ELLIPSE_SEGMENTS[1] and n[-1] == recording.ELLIPSE_SEGMENTS[0]
+    n = ellipses.ellipse_segments(np.array([0.0, 3.0, 7.0, 20.0, 60.0, 1e4, np.nan]))
+    assert n.tolist()[0] == n.tolist()[1] == ellipses.ELLIPSE_SEGMENTS[0]
+    assert n[-2] == ellipses.ELLIPSE_SEGMENTS[1] and n[-1] == ellipses.ELLIPSE_SEGMENTS[0]
     assert (np.diff(n[:-1]) >= 0).all()
     a = np.array([7.0, 20.0, 60.0])
     sag = a * (1 - np.cos(np.pi / n[2:5]))  # the chords' largest distance to the ellipse
-    assert (sag <= recording.ELLIPSE_TOLERANCE_PX + 1e-12).all()
+    assert (sag <= ellipses.ELLIPSE_TOLERANCE_PX + 1e-12).all()
 
 
 # --- the default (paper) run ----------------------------------------------------------------------
@@ -324,8 +324,8 @@ def test_fewer_segments_for_small_ellipses():
 def test_paper_detections_keep_the_old_entities_only(paper_rrd, physical_rrd):
     assert entities(paper_rrd) == OLD_ENTITIES
     assert entities(physical_rrd) == OLD_ENTITIES | NEW_ENTITIES
-    assert not recording.has_sun(frames_table(detections_table(False), sun=False))
-    assert not recording.has_rim_ellipses(detections_table(False))
+    assert not sun.has_sun(frames_table(detections_table(False), sun=False))
+    assert not ellipses.has_rim_ellipses(detections_table(False))
 
 
 def test_camera_points_are_crater_discs_without_ellipses_and_dots_with_them(paper_rrd,
@@ -338,15 +338,15 @@ def test_camera_points_are_crater_discs_without_ellipses_and_dots_with_them(pape
     np.testing.assert_allclose(paper, disc_px, rtol=1e-6)  # scene units: the crater's size
     dots = [r for frame_radii in columns(physical_rrd, entity)[f"{entity}:Points2D:radii"]
             for r in frame_radii]
-    np.testing.assert_array_equal(dots, -recording.BEARING_DOT_UI)  # UI points
+    np.testing.assert_array_equal(dots, -ellipses.BEARING_DOT_UI)  # UI points
 
 
 def test_layout_has_the_sun_and_gsd_plots_without_new_origins(tmp_path):
     path = tmp_path / "layout.rbl"
-    recording.blueprint().save(recording.APP_ID, path)
+    layout.blueprint().save(base.APP_ID, path)
     by_name = {v["name"][0]: v for v in views(blueprint_columns(path)).values() if "name" in v}
     sun = by_name["Sun elevation at the sub-spacecraft point (deg)"]
     gsd = by_name["ground sample distance (m/px)"]
-    assert sun["contents"] == [recording.SUN_ELEVATION_ENTITY]
-    assert gsd["contents"] == [recording.GSD_ENTITY]
+    assert sun["contents"] == [sun.SUN_ELEVATION_ENTITY]
+    assert gsd["contents"] == [sun.GSD_ENTITY]
     assert sun["origin"] == gsd["origin"] == ["/trajectory"]

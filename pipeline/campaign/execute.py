@@ -59,8 +59,8 @@ from pipeline.errors import ConfigError, PipelineError
 from pipeline.io.catalogue_db import Catalogue, load_recorded_catalogue, share_catalogue
 from pipeline.io.rrd import VISUALS_ENV
 from pipeline.io.store import RunStore, atomic_write_text
-from pipeline.io.workspace import workspace
 from pipeline.ops.score import NAV_SOURCES, QUANTITY_NAMES, summarize_navigation, windows
+from pipeline.workspace import workspace
 
 METHOD_COLUMNS = ("paper", "joint")  # estimators whose window statistics the table carries
 NAVIGATION_COLUMNS = ("t_s", "status", "altitude_m", *(

@@ -65,15 +65,10 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.config import (
-    MAX_SEED,
-    RunConfig,
-    _plain_name,
-    validate_run_id,
-    validate_scenario_name,
-)
+from pipeline.config import MAX_SEED, RunConfig, validate_run_id, validate_scenario_name
+from pipeline.config.checks import plain_name
 from pipeline.errors import ConfigError
-from pipeline.io.workspace import workspace
+from pipeline.workspace import workspace
 
 MAX_RUNS = 100_000
 SPEC_KEYS = ("base", "runs", "seed", "target", "recordings", "keep_runs", "catalogue_errors",
@@ -282,7 +277,7 @@ def spec_path(name_or_path: str) -> Path:
     p = Path(name_or_path)
     if p.suffix == ".toml":
         return p
-    return campaigns_dir() / f"{_plain_name(name_or_path, 'campaign', 'a campaign name')}.toml"
+    return campaigns_dir() / f"{plain_name(name_or_path, 'campaign', 'a campaign name')}.toml"
 
 
 def load_spec(name_or_path: str) -> CampaignSpec:

@@ -24,7 +24,8 @@ from pipeline.config import RunConfig, scenario_path
 from pipeline.errors import ConfigError
 from pipeline.ops.sweep import cap_label, table1, table1_markdown
 from pipeline.studies.suslu2025 import STUDY
-from pipeline.viz import recording, report
+from pipeline.viz.report import sweep_report
+from pipeline.viz.rerun import estimation, layout
 
 CAP_KEY = "detection.max_craters"
 
@@ -131,18 +132,18 @@ def _make(folder: Path, spec: CampaignSpec, cfg: RunConfig, scores: pl.DataFrame
             if not ((t_s >= a) & (t_s < b)).any():  # the sweep's frames miss this figure
                 continue
             name = f"fig{fig_no}_{method}_caps_{a:.0f}-{b:.0f}s.png"
-            put(name, lambda p, method=method, a=a, b=b: report.fig_caps(
+            put(name, lambda p, method=method, a=a, b=b: sweep_report.fig_caps(
                 first, method, [cap_label(c) for c in s.caps], a, b, p,
                 f"Position errors per cap, {a:.0f}-{b:.0f} s ({method})"))
             figures[name] = f"Fig. {fig_no}, {method}, {a:.0f}-{b:.0f} s"
-    put("sweep_report.md", lambda p: report.write_sweep_report(p, table_md, figures, {
+    put("sweep_report.md", lambda p: sweep_report.write_sweep_report(p, table_md, figures, {
         "sweep_id": spec.name, "scenario": cfg.name,
         "caps": [cap_label(c) for c in s.caps], "methods": list(s.methods),
         "seeds": list(s.seeds), "window": cfg.scoring.table_window}))
 
     def rrd(p: Path) -> None:
-        with recording.recording(spec.name, p, layout=recording.sweep_blueprint(s.methods)) as rec:
-            recording.log_sweep(rec, first)
+        with layout.recording(spec.name, p, layout=layout.sweep_blueprint(s.methods)) as rec:
+            estimation.log_sweep(rec, first)
 
     put("sweep.rrd", rrd)
     return names

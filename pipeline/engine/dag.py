@@ -20,7 +20,7 @@ class Dag:
             if s.name in self.stages:
                 raise PipelineError(f"stage {s.name!r} declared twice")
             self.stages[s.name] = s
-            for o in s.outputs:
+            for o in s.artifacts:
                 if o in producer:
                     raise PipelineError(f"artifact {o!r} written by both {producer[o]!r} and "
                                         f"{s.name!r}")
@@ -28,10 +28,15 @@ class Dag:
         self.producer: Mapping[str, str] = producer
         self.upstream: dict[str, tuple[str, ...]] = {}
         self.optional_upstream: dict[str, tuple[str, ...]] = {}
+        visuals = {v for s in self.stages.values() for v in s.visuals}
         for s in self.stages.values():
             missing = [i for i in (*s.inputs, *s.optional_inputs) if i not in producer]
             if missing:
                 raise PipelineError(f"stage {s.name!r} reads {missing}, which no stage writes")
+            drawn = sorted(set(s.inputs + s.optional_inputs) & visuals)
+            if drawn:
+                raise PipelineError(f"stage {s.name!r} reads the visuals {drawn}: a stage reads "
+                                    "computed outputs only (visuals are keyed apart)")
             self.upstream[s.name] = tuple(dict.fromkeys(producer[i] for i in s.inputs))
             self.optional_upstream[s.name] = tuple(
                 u for u in dict.fromkeys(producer[i] for i in s.optional_inputs)

@@ -2,9 +2,11 @@
 
 A stage's cache key includes the source of its own module and of every `pipeline` module it imports,
 directly or not, except the framework around the stages (the engine, the run store, the workspace,
-errors, the CLI), whose changes do not change what a stage computes. `config.py` is keyed: besides
-loading, it derives values stages use (the navigator's noise, the jitter horizon, the windows).
-Editing the report module thus reruns only the stages that import it.
+errors, the CLI), whose changes do not change what a stage computes. The config package is keyed:
+besides loading, it derives values stages use (the navigator's noise, the jitter horizon, the
+windows). A stage's computation is keyed without the visual layer (`exclude`: `pipeline.viz`,
+which draws and never computes); its visuals are keyed on their own code. Editing a recording
+thus redraws that stage's recording only.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from functools import cache
 from pathlib import Path
 
 # Modules that carry no stage behaviour: their edits must not make every run stale.
-FRAMEWORK = ("pipeline.errors", "pipeline.engine", "pipeline.io.store", "pipeline.io.workspace",
+FRAMEWORK = ("pipeline.errors", "pipeline.engine", "pipeline.io.store", "pipeline.workspace",
              "pipeline.cli")
 FRAMEWORK_EXACT = ("pipeline", "pipeline.stages")  # package inits (the stages' registry)
 
@@ -62,9 +64,14 @@ def _imports(module: str) -> tuple[str, ...]:
     return tuple(sorted(n for n in names if n.startswith("pipeline") and _source(n)))
 
 
+def _under(module: str, packages: tuple[str, ...]) -> bool:
+    return any(module == p or module.startswith(p + ".") for p in packages)
+
+
 @cache
-def closure(roots: tuple[str, ...]) -> tuple[str, ...]:
-    """The modules `roots` run: themselves and their `pipeline` imports, less the framework."""
+def closure(roots: tuple[str, ...], exclude: tuple[str, ...] = ()) -> tuple[str, ...]:
+    """The modules `roots` run: themselves and their `pipeline` imports, less the framework and
+    the packages `exclude` (not followed)."""
     seen: set[str] = set()
     todo = list(roots)
     while todo:
@@ -72,15 +79,16 @@ def closure(roots: tuple[str, ...]) -> tuple[str, ...]:
         if m in seen:
             continue
         seen.add(m)
-        todo.extend(i for i in _imports(m) if not _is_framework(i) or i in roots)
+        todo.extend(i for i in _imports(m)
+                    if (not _is_framework(i) or i in roots) and not _under(i, exclude))
     return tuple(sorted(seen))
 
 
 @cache
-def code_hash(roots: tuple[str, ...]) -> str:
-    """sha256 (16 hex) over the names and sources of `closure(roots)`."""
+def code_hash(roots: tuple[str, ...], exclude: tuple[str, ...] = ()) -> str:
+    """sha256 (16 hex) over the names and sources of `closure(roots, exclude)`."""
     h = hashlib.sha256()
-    for m in closure(roots):
+    for m in closure(roots, exclude):
         found = _source(m)
         if found is not None:
             h.update(m.encode() + b"\0" + found[1] + b"\0")

@@ -36,7 +36,7 @@ from pipeline.core.math import frames, tiling
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.errors import CatalogueError, StageInputError
 from pipeline.io.store import now_iso, sha256_file
-from pipeline.io.workspace import PACKAGE_DIR, Workspace, workspace
+from pipeline.workspace import PACKAGE_DIR, Workspace, workspace
 
 SYNTHETIC = "synthetic"
 DEFAULT_DB = "catalogue/craters.duckdb"

@@ -21,23 +21,18 @@ from __future__ import annotations
 import functools
 import warnings
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from pipeline.config.epoch import parse_epoch_utc
 from pipeline.core.body import illumination
 from pipeline.core.math import frames
 from pipeline.core.math.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
-from pipeline.errors import ConfigError, PipelineError
+from pipeline.errors import PipelineError
 
 DE421_FILE = "de421.bsp"
-# DE421's span (JD 2414864.5 - 2471184.5 TDB) less a day at each end for the light time.
-DE421_FIRST_UTC = datetime(1899, 7, 30, tzinfo=UTC)
-DE421_LAST_UTC = datetime(2053, 10, 7, tzinfo=UTC)
-
-
 class EphemerisDataError(PipelineError):
     """The offline ephemeris cannot be loaded (skyfield or skyfield-data missing, file absent)."""
 
@@ -63,26 +58,6 @@ class SunVectors:
     r_sun_icrf_m: np.ndarray
     r_sun_mcmf_m: np.ndarray
     r_sun_mci_m: np.ndarray
-
-
-def parse_epoch_utc(epoch_utc: str) -> datetime:
-    """An ISO 8601 time as an aware UTC datetime; no offset means UTC, another offset is converted.
-
-    Raises ConfigError (one line) for anything else or an epoch outside DE421's span.
-    """
-    text = epoch_utc.strip() if isinstance(epoch_utc, str) else None
-    try:
-        if not text:
-            raise ValueError
-        dt = datetime.fromisoformat(text)
-    except ValueError:
-        raise ConfigError(f"epoch_utc {epoch_utc!r} is not an ISO 8601 UTC time such as "
-                          f"'2025-03-14T06:55:00Z'") from None
-    dt = dt.replace(tzinfo=UTC) if dt.tzinfo is None else dt.astimezone(UTC)
-    if not DE421_FIRST_UTC <= dt <= DE421_LAST_UTC:
-        raise ConfigError(f"epoch_utc {epoch_utc!r} is outside the DE421 ephemeris "
-                          f"({DE421_FIRST_UTC:%Y-%m-%d} to {DE421_LAST_UTC:%Y-%m-%d})")
-    return dt
 
 
 def de421_path() -> Path:

@@ -34,7 +34,7 @@ import pyarrow.dataset as pads
 
 from pipeline.config import validate_run_id
 from pipeline.errors import ConfigError, PipelineError
-from pipeline.io.workspace import Workspace, workspace
+from pipeline.workspace import Workspace, workspace
 
 DEFAULT_DB = "catalogue/craters.duckdb"
 CATALOGUE_ALIAS = "craters"

@@ -15,9 +15,12 @@ leaves either the old set or the new one; unreferenced folders are swept under t
 `manifest.json` (all stages' entries), `config.json` and `run.duckdb` (views over the Parquet
 outputs, through the stage symlinks) are conveniences derived from the committed folders.
 
-A stage is fresh when its entry has the same key, its upstream stages are still the commits it read,
-and every output is there with the size and sha256 it was committed with (hashing the default run's
-73 MiB takes about 0.15 s): a truncated, replaced or corrupted output is never "up to date".
+A stage is fresh when its entry has the same key, its upstream stages still hold the outputs it
+read (their `digest`: the sha256 over their outputs' sha256), and every output is there with the
+size and sha256 it was committed with (hashing the default run's 73 MiB takes about 0.15 s): a
+truncated, replaced or corrupted output is never "up to date". A stage's visuals (recordings,
+reports) are listed apart with their own key: redrawing them (`begin_redraw`) commits a new folder
+holding the same outputs (hard links) and new visuals, so the digest, and what is downstream, stay.
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ import duckdb
 
 from pipeline.config import validate_run_id
 from pipeline.errors import PipelineError, StageInputError
-from pipeline.io.workspace import workspace
+from pipeline.workspace import workspace
 
 STAGES_DIR = ".stages"
 ENTRY_FILE = "stage.json"
@@ -170,12 +173,18 @@ class RunStore:
         return {"run_id": self.run_id,
                 "stages": {s: e for s in self.committed_stages() if (e := self.entry(s))}}
 
+    def digest(self, stage: str) -> str | None:
+        """The committed outputs' digest of `stage` (what a downstream stage read), None when it
+        never committed."""
+        e = self.entry(stage)
+        return None if e is None else e.get("digest")
+
     def artifacts(self) -> dict[str, Path]:
-        """Every committed output by name (e.g. "detections.parquet") -> its path."""
+        """Every committed output and visual by name (e.g. "detections.parquet") -> its path."""
         found = {}
         for stage in self.committed_stages():
             entry = self.entry(stage) or {}
-            for name in entry.get("outputs", {}):
+            for name in (*entry.get("outputs", {}), *entry.get("visuals", {})):
                 found[name] = self.stage_dir(stage) / name
         return found
 
@@ -205,21 +214,35 @@ class RunStore:
 
     def is_fresh(self, stage: str, key: str, upstream: dict[str, str | None] | None = None
                  ) -> bool:
-        """Committed with `key`, on the same upstream commits, and every output as promised."""
+        """Committed with `key`, on the same upstream outputs (their digests), and every output
+        as promised."""
         e = self.entry(stage)
         if e is None or e.get("key") != key:
             return False
-        for up, token in (upstream or {}).items():
-            if e.get("inputs", {}).get(up, {}).get("token") != token:
+        for up, digest in (upstream or {}).items():
+            if digest is None or e.get("inputs", {}).get(up, {}).get("digest") != digest:
                 return False
+        return self._intact(stage, e.get("outputs", {}))
+
+    def visuals_fresh(self, stage: str, visuals_key: str, declared: tuple[str, ...] = ()
+                      ) -> bool:
+        """The stage's visuals drawn with `visuals_key`, the `declared` ones among them, and
+        every one as committed."""
+        e = self.entry(stage)
+        if e is None or e.get("visuals_key") != visuals_key:
+            return False
+        drawn = e.get("visuals", {})
+        return set(declared) <= set(drawn) and self._intact(stage, drawn)
+
+    def _intact(self, stage: str, promised: dict[str, Any]) -> bool:
         folder = self.stage_dir(stage)
-        for name, promised in e.get("outputs", {}).items():
+        for name, p_ in promised.items():
             p = folder / name
             try:
                 st = p.stat()
             except OSError:
                 return False
-            if st.st_size != promised["bytes"] or sha256_file(p) != promised["sha256"]:
+            if st.st_size != p_["bytes"] or sha256_file(p) != p_["sha256"]:
                 return False
         return True
 
@@ -265,10 +288,32 @@ class RunStore:
                     else p.unlink(missing_ok=True)
 
     def begin(self, stage: str, key: str, inputs: dict[str, Any], config_hash: str,
-              code_hash: str, force: bool = False) -> StageTransaction:
-        """A transaction writing `stage`'s outputs into a fresh folder (call under `lock()`)."""
+              code_hash: str, force: bool = False, visuals: tuple[str, ...] = ()
+              ) -> StageTransaction:
+        """A transaction writing `stage`'s outputs (and its `visuals`) into a fresh folder (call
+        under `lock()`)."""
         self.stages_dir.mkdir(parents=True, exist_ok=True)
-        return StageTransaction(self, stage, key, inputs, config_hash, code_hash, force)
+        return StageTransaction(self, stage, key, inputs, config_hash, code_hash, force, visuals)
+
+    def begin_redraw(self, stage: str, visuals: tuple[str, ...]) -> StageTransaction:
+        """A transaction that keeps `stage`'s committed outputs (hard links into a fresh folder,
+        the same bytes) and entry, for new visuals (call under `lock()`)."""
+        e = self.entry(stage)
+        if e is None:
+            raise StageInputError(f"stage {stage!r} of run {self.run_id!r} has nothing to redraw")
+        tx = self.begin(stage, e["key"], e.get("inputs", {}), e.get("config_hash", ""),
+                        e.get("code_hash", ""), visuals=visuals)
+        for name in e.get("outputs", {}):
+            src = self.stage_dir(stage) / name
+            dst = tx.output(name)
+            try:
+                os.link(src, dst)
+            except OSError:
+                shutil.copy2(src, dst)
+        tx.tables = list(e.get("tables", []))
+        tx.rows = dict(e.get("rows", {}))
+        tx.carried = {"wall_time_s": e.get("wall_time_s"), "info": e.get("info", {})}
+        return tx
 
     def _publish(self, stage: str, folder: Path) -> None:
         """The atomic step: point `stage`'s symlink at `folder`, then drop the old folder (only
@@ -319,6 +364,14 @@ class RunStore:
         os.replace(tmp, self.duckdb_path)
 
 
+def outputs_digest(outputs: dict[str, Any]) -> str:
+    """sha256 (16 hex) over the outputs' names and sha256s: what a downstream stage read."""
+    h = hashlib.sha256()
+    for name in sorted(outputs):
+        h.update(f"{name}\0{outputs[name]['sha256']}\0".encode())
+    return h.hexdigest()[:16]
+
+
 def _sql_str(text: str) -> str:
     return text.replace("'", "''")
 
@@ -335,8 +388,12 @@ class StageTransaction:
     """A stage's outputs in a fresh folder; `commit` publishes them all at once, `abort` drops."""
 
     def __init__(self, store: RunStore, stage: str, key: str, inputs: dict[str, Any],
-                 config_hash: str, code_hash: str, force: bool = False):
+                 config_hash: str, code_hash: str, force: bool = False,
+                 visuals: tuple[str, ...] = ()):
         self.store, self.stage, self.key, self.inputs = store, stage, key, inputs
+        self.visuals = set(visuals)  # the visuals: listed apart in the entry
+        self.drawing = False  # while True, every output written is a visual (a figure, ...)
+        self.carried: dict[str, Any] | None = None  # a redraw: the computation's facts kept
         self.config_hash, self.code_hash = config_hash, code_hash
         self.force = force  # rebuild shared outputs (the catalogue) even when they look current
         name = f"{stage}.{time.strftime('%Y%m%dT%H%M%S')}-{secrets.token_hex(4)}"
@@ -349,9 +406,12 @@ class StageTransaction:
         self._t0 = time.perf_counter()
 
     def output(self, name: str) -> Path:
-        """Path to write output `name` to (published as runs/<id>/<stage>/<name>)."""
+        """Path to write output `name` to (published as runs/<id>/<stage>/<name>); while
+        `drawing`, a visual."""
         if name not in self._outputs:
             self._outputs.append(name)
+            if self.drawing:
+                self.visuals.add(name)
         return self.folder / name
 
     def table(self, name: str, frame: Any) -> Path:
@@ -362,10 +422,10 @@ class StageTransaction:
         self.rows[name] = frame.height
         return path
 
-    def commit(self, info: dict[str, Any] | None = None, config: dict[str, Any] | None = None
-               ) -> dict[str, Any]:
+    def commit(self, info: dict[str, Any] | None = None, config: dict[str, Any] | None = None,
+               visuals_key: str | None = None) -> dict[str, Any]:
         """Write the entry beside the outputs, then publish the folder with one atomic rename."""
-        outputs = {}
+        files = {}
         for name in self._outputs:
             p = self.folder / name
             if not p.is_file():
@@ -374,19 +434,25 @@ class StageTransaction:
             with open(p, "rb") as f:
                 os.fsync(f.fileno())
             st = p.stat()
-            outputs[name] = {"bytes": st.st_size, "sha256": sha256_file(p)}
+            files[name] = {"bytes": st.st_size, "sha256": sha256_file(p)}
+        outputs = {n: f for n, f in files.items() if n not in self.visuals}
+        carried = self.carried or {}
         entry = {
             "stage": self.stage,
             "key": self.key,
+            "digest": outputs_digest(outputs),
             "config_hash": self.config_hash,
             "code_hash": self.code_hash,
             "inputs": self.inputs,
             "outputs": outputs,
+            "visuals": {n: f for n, f in files.items() if n in self.visuals},
+            "visuals_key": visuals_key,
             "tables": self.tables,
             "rows": self.rows,
-            "wall_time_s": round(time.perf_counter() - self._t0, 3),
+            "wall_time_s": carried.get("wall_time_s",
+                                       round(time.perf_counter() - self._t0, 3)),
             "finished_at": now_iso(),
-            "info": info or {},
+            "info": carried.get("info", info or {}),
             "run_config": config,
         }
         atomic_write_text(self.folder / ENTRY_FILE, json.dumps(entry, indent=2) + "\n")

@@ -308,3 +308,65 @@ def identification_by_detections(frames_table: pl.DataFrame) -> pl.DataFrame:
                      "median_ms": float(np.median(lis["id_ms"].to_numpy()[sel]))
                      if sel.any() else np.nan})
     return pl.DataFrame(rows)
+
+
+# Bins of the number of craters used in a frame (inclusive; None: no upper bound). Frames with
+# fewer than 3 have no estimate; their bin shows how many there are.
+CRATER_BINS: tuple[tuple[int, int | None], ...] = (
+    (0, 2), (3, 5), (6, 10), (11, 20), (21, 50), (51, 100), (101, 200), (201, None))
+
+
+def crater_bin_label(lo: int, hi: int | None) -> str:
+    return f">{lo - 1}" if hi is None else f"{lo}-{hi}"
+
+
+def by_craters_used(scores: pl.DataFrame,
+                    bins: tuple[tuple[int, int | None], ...] = CRATER_BINS) -> pl.DataFrame:
+    """Errors by the number of craters used in a frame. Long table, one row per method, bin and
+    quantity (bins without frames are left out):
+
+    method, craters (bin label, e.g. "6-10"), n_min, n_max (None: open), quantity, frames (in
+    the bin), estimated (frames with status ok), rmse, median_abs (median |error|), p95_abs,
+    crlb_rms (root of the mean CRLB variance over the estimated frames), ratio_to_crlb
+    (rmse / crlb_rms), median_ratio (median of |error| / sqrt(CRLB) per frame), mean_nees.
+
+    Statistics use the estimated frames with a finite error; NaN where there are none."""
+    rows = []
+    for (method,), m in scores.group_by("method", maintain_order=True):
+        n_used = m["n_used"].to_numpy()
+        ok = (m["status"] == "ok").to_numpy()
+        nees_all = m["nees"].to_numpy().astype(float)
+        for lo, hi in bins:
+            inside = (n_used >= lo) & (n_used <= (np.inf if hi is None else hi))
+            if not inside.any():
+                continue
+            sel = inside & ok
+            nees = nees_all[sel]
+            nees = nees[np.isfinite(nees)]
+            for q in QUANTITIES:
+                err = m[f"err_{q.name}"].to_numpy().astype(float)[sel]
+                crlb = m[f"crlb_{q.name}"].to_numpy().astype(float)[sel]
+                good = np.isfinite(err)
+                e, c = err[good], crlb[good]
+                rmse = float(np.sqrt(np.mean(e**2))) if e.size else np.nan
+                cfin = c[np.isfinite(c) & (c > 0)]
+                crlb_rms = float(np.sqrt(np.mean(cfin**2))) if cfin.size else np.nan
+                both = np.isfinite(c) & (c > 0)
+                rows.append({
+                    "method": method, "craters": crater_bin_label(lo, hi), "n_min": lo,
+                    "n_max": hi, "quantity": q.name, "frames": int(inside.sum()),
+                    "estimated": int(sel.sum()), "rmse": rmse,
+                    "median_abs": float(np.median(np.abs(e))) if e.size else np.nan,
+                    "p95_abs": float(np.percentile(np.abs(e), 95)) if e.size else np.nan,
+                    "crlb_rms": crlb_rms,
+                    "ratio_to_crlb": rmse / crlb_rms if np.isfinite(crlb_rms) else np.nan,
+                    "median_ratio": float(np.median(np.abs(e[both]) / c[both]))
+                    if both.any() else np.nan,
+                    "mean_nees": float(np.mean(nees)) if nees.size else np.nan,
+                })
+    schema = {"method": pl.String, "craters": pl.String, "n_min": pl.Int64, "n_max": pl.Int64,
+              "quantity": pl.String, "frames": pl.Int64, "estimated": pl.Int64,
+              "rmse": pl.Float64, "median_abs": pl.Float64, "p95_abs": pl.Float64,
+              "crlb_rms": pl.Float64, "ratio_to_crlb": pl.Float64, "median_ratio": pl.Float64,
+              "mean_nees": pl.Float64}
+    return pl.DataFrame(rows, schema=schema)

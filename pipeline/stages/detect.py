@@ -19,12 +19,12 @@ from pipeline.errors import StageInputError
 from pipeline.io import ephemeris
 from pipeline.io.catalogue_db import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.io.pair_index import PairIndexStore
-from pipeline.io.workspace import workspace
 from pipeline.ops.detect import detect_all, model_of
 from pipeline.ops.identify import IdentifyOptions, IndexCache, identify_all
 from pipeline.stages.estimate import options as estimate_options
 from pipeline.stages.navigate import options as navigate_options
-from pipeline.viz import recording
+from pipeline.viz.draw import record_detect
+from pipeline.workspace import workspace
 
 IMU_INPUTS = ("imu.parquet", "imu_truth.parquet", "altimeter.parquet")
 
@@ -35,6 +35,15 @@ def optional_inputs(cfg: RunConfig) -> tuple[str, ...]:
     they are the source."""
     imu = IMU_INPUTS if cfg.identification.mode != "simulated" else ()
     return imu + (("pixel_detections.parquet",) if cfg.detection.source == "pixels" else ())
+
+
+def identification_navigator(cfg: RunConfig) -> tuple[str, ...]:
+    """What identification by algorithm reads of the navigator (its filter: the navigation, the
+    IMU and the altimeter, and the verifying pose's estimation options); nothing for the coin
+    flip."""
+    if cfg.identification.mode == "simulated":
+        return ()
+    return ("navigation", "imu", "altimeter", "estimation")
 
 
 def identify_options(cfg: RunConfig) -> IdentifyOptions:
@@ -94,8 +103,6 @@ def run(ctx: StageContext) -> StageResult:
                 if cfg.detection.source == "pixels" else None)
     tx.table("detections", detections)
     tx.table("frames", frames_table)
-    with recording.recording(ctx.store.run_id, tx.output("detection.rrd")) as rec:
-        recording.log_detection(rec, model, trajectory, detections, frames_table)
     n = frames_table
     peak = int(n["n_visible"].max()) if n.height else 0
     folder = ctx.store.stage_dir("detect")
@@ -119,13 +126,16 @@ def run(ctx: StageContext) -> StageResult:
 STAGE = Stage(
     name="detect",
     doc="craters in view, visible (Eq. 9), identified, used; their measurements",
-    reads=("detection", "identification", "identification_navigator", "trajectory.epoch_utc",
-           "seed"),
+    reads=("detection", "identification", "trajectory.epoch_utc", "seed"),
+    reads_when=identification_navigator,
     inputs=("catalogue.json", "trajectory.parquet"),
     optional_inputs=(*IMU_INPUTS, "pixel_detections.parquet"),
     uses_optional=optional_inputs,
-    outputs=("detections.parquet", "frames.parquet", "detection.rrd"),
+    outputs=("detections.parquet", "frames.parquet"),
     code=("pipeline.stages.detect",),
     run=run,
+    visuals=("detection.rrd",),
+    record=record_detect,
+    visual_code=("pipeline.viz.draw",),
     verify=lambda ctx: check_catalogue_unchanged(ctx.input("catalogue.json")),
 )

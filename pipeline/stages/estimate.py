@@ -13,7 +13,7 @@ from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.estimate import EstimateOptions, UsedCraters, estimate_all
-from pipeline.viz import recording
+from pipeline.viz.draw import record_estimate
 
 
 def options(cfg: RunConfig) -> EstimateOptions:
@@ -40,9 +40,6 @@ def run(ctx: StageContext) -> StageResult:
     with progress_bar("estimating poses", total) as advance:
         estimates = estimate_all(craters, options(cfg), cfg.seed, advance)
     tx.table("estimates", estimates)
-    trajectory = pl.read_parquet(ctx.input("trajectory.parquet"))
-    with recording.recording(ctx.store.run_id, tx.output("estimation.rrd")) as rec:
-        recording.log_estimation(rec, estimates, detections, trajectory)
     lines = []
     for method in cfg.estimation.methods:
         m = estimates.filter(pl.col("method") == method)
@@ -68,7 +65,10 @@ STAGE = Stage(
            "detection.catalogue_sigma_height_m", "detection.catalogue_sigma_diameter_share",
            "detection.camera_mounting_deg", "seed"),
     inputs=("detections.parquet", "frames.parquet", "trajectory.parquet"),
-    outputs=("estimates.parquet", "estimation.rrd"),
+    outputs=("estimates.parquet",),
     code=("pipeline.stages.estimate",),
     run=run,
+    visuals=("estimation.rrd",),
+    record=record_estimate,
+    visual_code=("pipeline.viz.draw",),
 )

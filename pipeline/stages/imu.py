@@ -15,9 +15,7 @@ import polars as pl
 
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.imu import simulate
-from pipeline.viz import recording
-
-RECORDED_RATE_HZ = 1.0  # the IMU's measured rates in the recording (the table keeps every sample)
+from pipeline.viz.draw import record_imu
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -29,10 +27,6 @@ def run(ctx: StageContext) -> StageResult:
     tx.table("imu_truth", sensors.truth)
     tx.table("altimeter", sensors.altimeter)
     tx.output("imu.json").write_text(json.dumps(sensors.facts, indent=2) + "\n")
-    every = max(round(cfg.imu.rate_hz / RECORDED_RATE_HZ), 1)
-    with recording.recording(ctx.store.run_id, tx.output("imu.rrd")) as rec:
-        recording.log_imu(rec, sensors.truth, sensors.altimeter, sensors.imu.gather_every(every),
-                          imu_rate_hz=cfg.imu.rate_hz, frames=trajectory)
     folder = ctx.store.stage_dir("imu")
     f = sensors.facts
     return StageResult(info=f, summary=(
@@ -50,7 +44,10 @@ STAGE = Stage(
     doc="IMU increments and laser-altimeter ranges from the true descent",
     reads=("trajectory", "imu", "altimeter", "seed"),
     inputs=("trajectory.parquet",),
-    outputs=("imu.parquet", "imu_truth.parquet", "altimeter.parquet", "imu.json", "imu.rrd"),
+    outputs=("imu.parquet", "imu_truth.parquet", "altimeter.parquet", "imu.json"),
     code=("pipeline.stages.imu",),
     run=run,
+    visuals=("imu.rrd",),
+    record=record_imu,
+    visual_code=("pipeline.viz.draw",),
 )

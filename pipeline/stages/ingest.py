@@ -18,8 +18,8 @@ from pipeline.engine.fingerprint import code_hash
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.io import catalogue_db as cat
 from pipeline.io.store import atomic_write_text
-from pipeline.io.workspace import workspace
-from pipeline.viz import recording
+from pipeline.viz.rerun import base, world
+from pipeline.workspace import workspace
 
 CATALOGUE_CODE = ("pipeline.io.catalogue_db", "pipeline.core.body.synthetic")
 
@@ -71,14 +71,14 @@ def run(ctx: StageContext) -> StageResult:
     if built:
         meta = build(cfg, key)
     assert meta is not None
-    rrd = recording.catalogue_recording_path(path)
+    rrd = base.catalogue_recording_path(path)
     # the recording's own key (the catalogue's and the recording code's), kept beside it: a kill
     # between the database and its recording, or an edited recording module, rewrites it
-    rrd_key = config_hash(key, code_hash(("pipeline.viz.recording",)))
+    rrd_key = config_hash(key, code_hash(("pipeline.viz.rerun.world",)))
     key_file = rrd.with_name(rrd.name + ".key")
     if built or not rrd.is_file() or not key_file.is_file() or key_file.read_text() != rrd_key:
         craters = cat.load_catalogue(path)
-        recording.log_catalogue(rrd, craters.r_mcmf_m, craters.diam_km, catalogue_id=path.stem)
+        world.log_catalogue(rrd, craters.r_mcmf_m, craters.diam_km, catalogue_id=path.stem)
         atomic_write_text(key_file, rrd_key)
     facts = {"db_path": str(path), "key": key, "recording": str(rrd), **meta}
     tx.output("catalogue.json").write_text(json.dumps(facts, indent=2, default=str) + "\n")

@@ -19,7 +19,7 @@ from pipeline.core.navigation.filter import FilterOptions
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.estimate import UsedCraters
 from pipeline.ops.navigate import NavigateOptions, navigate, process_noise
-from pipeline.viz import recording
+from pipeline.viz.draw import record_navigate
 
 
 def options(cfg: RunConfig) -> NavigateOptions:
@@ -63,8 +63,6 @@ def run(ctx: StageContext) -> StageResult:
         pl.read_parquet(ctx.input("altimeter.parquet")), frame_of_time, cfg.seed)
     tx.table("navigation", table)
     tx.output("navigation.json").write_text(json.dumps(facts, indent=2) + "\n")
-    with recording.recording(ctx.store.run_id, tx.output("navigation.rrd")) as rec:
-        recording.log_navigation(rec, table)
     ok = table.filter(pl.col("status") == "ok")
     last = table.filter(pl.col("err_pos_x_m").is_not_null()).tail(1)
     err_last = (float(np.sqrt(sum(last[f"err_pos_{c}_m"][0] ** 2 for c in "xyz")))
@@ -92,7 +90,10 @@ STAGE = Stage(
            "detection", "seed"),
     inputs=("trajectory.parquet", "imu.parquet", "imu_truth.parquet", "altimeter.parquet",
             "detections.parquet", "frames.parquet", "estimates.parquet"),
-    outputs=("navigation.parquet", "navigation.json", "navigation.rrd"),
+    outputs=("navigation.parquet", "navigation.json"),
     code=("pipeline.stages.navigate",),
     run=run,
+    visuals=("navigation.rrd",),
+    record=record_navigate,
+    visual_code=("pipeline.viz.draw",),
 )

@@ -10,7 +10,8 @@ only
 craters.parquet (one row per true rim in view), images.parquet (per image), detection_recall.
 parquet (recall by apparent size and incidence beside the detection model's prediction),
 render.json (the headline numbers and the detection model calibrated on the pixels),
-contact_sheet.png and render.rrd (the images, JPEG, with the true and detected rims).
+camera_images.parquet (the images, lossless PNG per frame); its visuals contact_sheet.png and
+render.rrd (the images, JPEG, with the true and detected rims).
 """
 
 from __future__ import annotations
@@ -27,12 +28,12 @@ from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.io import ephemeris
 from pipeline.io.catalogue_db import check_catalogue_unchanged, load_recorded_catalogue
+from pipeline.io.images import encode_png
 from pipeline.ops import render as ops_render
 from pipeline.ops.detect import model_of, true_poses
-from pipeline.viz import images, recording
+from pipeline.viz.draw import record_render
 
 RENDER_TAG = 0x12E4D  # the rendering's streams (roughness, sensor noise) within the run seed
-CONTACT_SHEET_FRAMES = 4
 
 
 def options(cfg: RunConfig) -> ops_render.RenderOptions:
@@ -65,10 +66,7 @@ def run(ctx: StageContext) -> StageResult:
     opts = options(cfg)
     phys = model.physical
     results = []
-    jpegs: list[bytes] = []
-    sheet = set(np.linspace(0, max(chosen.height - 1, 0), CONTACT_SHEET_FRAMES).astype(int)
-                .tolist()) if chosen.height else set()
-    sheet_images = []
+    pngs: list[bytes] = []
     if chosen.height:
         assert phys is not None and cfg.trajectory.epoch_utc is not None  # the config checks
         world = sensor.world_craters(craters.r_mcmf_m, craters.diam_km * 1e3, craters.crater_id,
@@ -84,10 +82,7 @@ def run(ctx: StageContext) -> StageResult:
                 img = ops_render.render_and_detect(model, craters, world, r_mcmf[i],
                                                    dcm_body_from_mcmf[i], sun[i], rng, opts)
                 results.append((int(frame[i]), float(t_s[i]), img))
-                jpegs.append(images.encode_jpeg(img.image, cfg.render.recording_size_px,
-                                                cfg.render.bits))
-                if i in sheet:
-                    sheet_images.append((int(frame[i]), float(t_s[i]), img))
+                pngs.append(encode_png(img.image))
                 advance()
     truth = ops_render.truth_table(results, craters.crater_id)
     detections = ops_render.detections_table(results, craters.crater_id)
@@ -103,15 +98,12 @@ def run(ctx: StageContext) -> StageResult:
     tx.table("rendered_craters", truth)
     tx.table("images", per_image)
     tx.table("detection_recall", recall)
+    tx.table("camera_images", pl.DataFrame(
+        {"frame": [r[0] for r in results], "t_s": [r[1] for r in results],
+         "bits": [cfg.render.bits] * len(results), "png": pngs},
+        schema={"frame": pl.Int32, "t_s": pl.Float64, "bits": pl.Int32, "png": pl.Binary}))
     tx.output("render.json").write_text(json.dumps(facts, indent=2) + "\n")
-    images.contact_sheet(tx.output("contact_sheet.png"), sheet_images,
-                         f"Rendered frames with true and detected rims ({ctx.store.run_id})",
-                         cfg.render.bits)
-    with recording.recording(ctx.store.run_id, tx.output("render.rrd")) as rec:
-        recording.log_images(rec, per_image, jpegs, cfg.detection.image_size_px,
-                             cfg.render.recording_size_px, detections, truth)
     folder = ctx.store.stage_dir("render")
-    size_mb = tx.output("render.rrd").stat().st_size / 2**20
     if not results:
         line = "no frame rendered (render.start_s, end_s)"
     elif not detections.height:
@@ -122,8 +114,8 @@ def run(ctx: StageContext) -> StageResult:
                 f"{facts['centre_error_px_median']:.2f} px")
     return StageResult(info=facts, summary=(
         f"wrote {folder / 'pixel_detections.parquet'}, rendered_craters.parquet, images.parquet,"
-        f" detection_recall.parquet ({len(results):,} images; {line})",
-        f"wrote {folder / 'contact_sheet.png'} and {folder / 'render.rrd'} ({size_mb:.1f} MiB)",
+        f" detection_recall.parquet, camera_images.parquet ({len(results):,} images; {line})",
+        f"and {folder / 'contact_sheet.png'}, {folder / 'render.rrd'}",
         f"ask it: just sql --run {ctx.store.run_id} \"SELECT * FROM detection_recall\"",
         f"look at it: rerun {folder / 'render.rrd'}",
     ))
@@ -139,8 +131,11 @@ STAGE = Stage(
            "trajectory.epoch_utc", "seed"),
     inputs=("catalogue.json", "trajectory.parquet"),
     outputs=("pixel_detections.parquet", "rendered_craters.parquet", "images.parquet",
-             "detection_recall.parquet", "render.json", "contact_sheet.png", "render.rrd"),
+             "detection_recall.parquet", "camera_images.parquet", "render.json"),
     code=("pipeline.stages.render",),
     run=run,
+    visuals=("contact_sheet.png", "render.rrd"),
+    record=record_render,
+    visual_code=("pipeline.viz.draw",),
     verify=lambda ctx: check_catalogue_unchanged(ctx.input("catalogue.json")),
 )

@@ -22,16 +22,16 @@ from pipeline.io.catalogue_db import check_catalogue_unchanged
 from pipeline.io.store import RunStore
 from pipeline.ops.score import (
     CraterLookup,
-    identification_by_detections,
+    by_craters_used,
     score_run,
     summarize,
     summarize_identification,
     summarize_navigation,
     windows,
 )
-from pipeline.viz import recording, report
+from pipeline.viz.draw import record_score
 
-RENDER_INPUTS = ("render.json", "detection_recall.parquet", "images.parquet")
+RENDER_INPUTS = ("render.json", "detection_recall.parquet", "images.parquet")  # the report's
 
 
 def catalogue_lookup(db_path: Path) -> CraterLookup:
@@ -87,28 +87,13 @@ def run(ctx: StageContext) -> StageResult:
     scores = frame_scores(cfg, trajectory, detections, ctx.input)
     wins = windows(cfg.scoring, t_impact)
     summary = summarize(scores, wins)
-    by_used = report.by_craters_used(scores)
     navigation = pl.read_parquet(ctx.input("navigation.parquet"))
     nav_summary = summarize_navigation(navigation, wins)
     tx.table("scores", scores)
     tx.table("summary", summary)
-    tx.table("by_craters_used", by_used)
+    tx.table("by_craters_used", by_craters_used(scores))
     tx.table("navigation_summary", nav_summary)
-    identification = summarize_identification(detections, frames_table, wins)
-    by_detections = identification_by_detections(frames_table)
-    tx.table("identification", identification)
-    with recording.recording(ctx.store.run_id, tx.output("scoring.rrd")) as rec:
-        recording.log_scoring(rec, scores)
-    recording.save_layout(tx.output("layout.rbl"), scores)
-    rendering = None
-    if cfg.render.enabled:
-        rendering = (json.loads(ctx.input("render.json").read_text()),
-                     pl.read_parquet(ctx.input("detection_recall.parquet")),
-                     pl.read_parquet(ctx.input("images.parquet")))
-    report.write_run_report(tx, cfg, ctx.store.run_id, trajectory, frames_table, scores, summary,
-                            t_impact, by_used=by_used, navigation=navigation,
-                            nav_summary=nav_summary, identification=identification,
-                            by_detections=by_detections, rendering=rendering)
+    tx.table("identification", summarize_identification(detections, frames_table, wins))
     folder = ctx.store.stage_dir("score")
     return StageResult(
         info={"t_impact_s": t_impact, "table_window": cfg.scoring.table_window},
@@ -175,9 +160,13 @@ STAGE = Stage(
     inputs=("trajectory.parquet", "trajectory.json", "catalogue.json", "detections.parquet",
             "frames.parquet", "estimates.parquet", "navigation.parquet"),
     outputs=("scores.parquet", "summary.parquet", "by_craters_used.parquet",
-             "navigation_summary.parquet", "identification.parquet", "scoring.rrd", "layout.rbl",
-             "report.md"),
+             "navigation_summary.parquet", "identification.parquet"),
     code=("pipeline.stages.score",),
+    visuals=("scoring.rrd", "layout.rbl", "report.md"),
+    visual_reads=("catalogue.source", "trajectory.frame_rate_hz", "estimation.robust",
+                  "estimation.methods", "imu.grade", "imu.rate_hz", "navigation"),
+    record=record_score,
+    visual_code=("pipeline.viz.draw",),
     optional_inputs=RENDER_INPUTS,
     uses_optional=lambda cfg: RENDER_INPUTS if cfg.render.enabled else (),
     run=run,

@@ -9,9 +9,8 @@ from __future__ import annotations
 import json
 
 from pipeline.engine.stage import Stage, StageContext, StageResult
-from pipeline.io.tables import quats, xyz
 from pipeline.ops.trajectory import simulate
-from pipeline.viz import recording
+from pipeline.viz.draw import record_trajectory
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -19,11 +18,6 @@ def run(ctx: StageContext) -> StageResult:
     table, facts = simulate(cfg.trajectory)
     tx.table("trajectory", table)
     tx.output("trajectory.json").write_text(json.dumps(facts, indent=2) + "\n")
-    with recording.recording(ctx.store.run_id, tx.output("trajectory.rrd")) as rec:
-        recording.log_trajectory(rec, table["frame"].to_numpy(), table["t_s"].to_numpy(),
-                                 xyz(table, "r_mci", "_m"), xyz(table, "v_mci", "_m_s"),
-                                 quats(table, "q_mci_from_body"), table["theta_m_rad"].to_numpy(),
-                                 table["altitude_m"].to_numpy())
     rp_km = facts["periapsis_radius_m"] / 1e3
     folder = ctx.store.stage_dir("trajectory")
     return StageResult(info=facts, summary=(
@@ -40,7 +34,10 @@ STAGE = Stage(
     doc="the true descent from the 300 km apoapsis to impact",
     reads=("trajectory",),
     inputs=(),
-    outputs=("trajectory.parquet", "trajectory.json", "trajectory.rrd"),
+    outputs=("trajectory.parquet", "trajectory.json"),
     code=("pipeline.stages.trajectory",),
     run=run,
+    visuals=("trajectory.rrd",),
+    record=record_trajectory,
+    visual_code=("pipeline.viz.draw",),
 )

@@ -20,8 +20,8 @@ from scipy import stats
 from typer.testing import CliRunner
 
 from pipeline.cli import app
-from pipeline.io.workspace import workspace
-from pipeline.viz.recording import APP_ID, catalogue_recording_id, recording_id
+from pipeline.viz.rerun.base import APP_ID, catalogue_recording_id, recording_id
+from pipeline.workspace import workspace
 
 # Two-sided 99.9 % bounds: the tests fail by chance about once in a thousand runs each.
 ALPHA = 1e-3

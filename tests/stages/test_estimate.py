@@ -29,7 +29,7 @@ from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
 from pipeline.ops import estimate
 from pipeline.stages import DAG
-from pipeline.viz import recording
+from pipeline.viz.rerun import base, estimation
 
 WINDOW = {"start_s": 1900.0, "end_s": 2000.0, "frame_rate_hz": 1.0}
 N_FRAMES = 101
@@ -470,7 +470,7 @@ def test_estimation_recording_holds_the_promised_entities(runs):
     est = read(store, "estimates")
     path = store.path("estimation.rrd")
     [entry] = rr.chunk.RrdReader(path).recordings()
-    assert entry.recording_id == recording.recording_id("robust")
+    assert entry.recording_id == base.recording_id("robust")
     chunks = rr.chunk.RrdReader(path).stream().collect()
     f32_atol_m = (MOON_RADIUS_M + 300e3) * F32_REL
     for method in METHODS:
@@ -493,7 +493,7 @@ def test_estimation_recording_holds_the_promised_entities(runs):
         e = f"/world/estimate_cov/{method}:Ellipsoids3D"
         np.testing.assert_allclose(frame_values(ell, f"{e}:centers"), r, rtol=0, atol=f32_atol_m)
         cov = m["cov"].to_numpy().reshape(-1, 6, 6)[:, :3, :3]
-        expected = 3 * np.sqrt(np.linalg.eigvalsh(cov)) * recording.COVARIANCE_SCALE
+        expected = 3 * np.sqrt(np.linalg.eigvalsh(cov)) * estimation.COVARIANCE_SCALE
         np.testing.assert_allclose(np.sort(frame_values(ell, f"{e}:half_sizes"), axis=1),
                                    expected, rtol=1e-6)
 

@@ -24,7 +24,7 @@ from pipeline.config import load_config, to_dict
 from pipeline.io.catalogue_db import CatalogueError
 from pipeline.io.store import RunStore
 from pipeline.stages import ingest
-from pipeline.viz import recording
+from pipeline.viz.rerun import base
 
 R_M = 1_737_400.0
 COLUMNS = ["crater_id", "source_id", "lat_deg", "lon_deg", "diam_km", "x_m", "y_m", "z_m", "tile",
@@ -410,8 +410,8 @@ def test_synthetic_ingest_stage_outputs(workdir):
     # the catalogue's recording lives beside the database, once for every run of it
     rrd = workdir / "catalogue" / "craters.rrd"
     [entry] = rr.chunk.RrdReader(rrd).recordings()
-    assert entry.recording_id == recording.catalogue_recording_id("craters")
-    assert entry.application_id == recording.APP_ID
+    assert entry.recording_id == base.catalogue_recording_id("craters")
+    assert entry.application_id == base.APP_ID
     df = rrd_entities(rrd)
     points = np.array(df["/world/moon/craters:Points3D:positions"][0].to_list())
     assert points.shape == (table.height, 3)

@@ -20,7 +20,7 @@ from pipeline.core.sensors import render
 from pipeline.io.catalogue_db import load_catalogue
 from pipeline.io.store import RunStore
 from pipeline.io.tables import xyz
-from pipeline.viz import recording
+from pipeline.viz.rerun import rendered as rerun_rendered
 
 pytestmark = pytest.mark.slow  # rendering 1024 x 1024 frames: `just test-slow` (and CI)
 
@@ -76,13 +76,13 @@ def test_render_stage_writes_images_detections_truth_and_recall(rendered: RunSto
 
 def test_render_recording_holds_the_images_and_rims(rendered: RunStore) -> None:
     store = rr.chunk.RrdReader(rendered.path("render.rrd")).stream().collect()
-    df = store.reader(index="frame", contents=f"{recording.IMAGE_ENTITY}/**").to_polars()
-    blobs = [b for b in df[f"{recording.IMAGE_ENTITY}:EncodedImage:blob"].to_list()
+    df = store.reader(index="frame", contents=f"{rerun_rendered.IMAGE_ENTITY}/**").to_polars()
+    blobs = [b for b in df[f"{rerun_rendered.IMAGE_ENTITY}:EncodedImage:blob"].to_list()
              if b is not None]
     assert len(blobs) == 4
     first = bytes(np.asarray(blobs[0][0], dtype=np.uint8))
     assert first[:2] == b"\xff\xd8"  # JPEG
-    assert f"{recording.IMAGE_ENTITY}/rims/matched:LineStrips2D:strips" in df.columns
+    assert f"{rerun_rendered.IMAGE_ENTITY}/rims/matched:LineStrips2D:strips" in df.columns
 
 
 def test_images_scenario_runs_end_to_end_from_pixels(tmp_path, catalogue_db: Path) -> None:

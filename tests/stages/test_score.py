@@ -27,7 +27,7 @@ from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
 from pipeline.ops.score import true_used_positions
 from pipeline.stages import score
-from pipeline.viz import recording
+from pipeline.viz.rerun import base as rerun_base
 
 WINDOW = {"start_s": 1400.0, "end_s": "none", "frame_rate_hz": 0.02}
 N_FRAMES = 32
@@ -407,8 +407,8 @@ def test_scoring_recording_holds_errors_bounds_and_nees_per_frame(runs):
     scores = r.read("scores")
     path = r.store.path("scoring.rrd")
     [entry] = rr.chunk.RrdReader(path).recordings()
-    assert (entry.application_id, entry.recording_id) == (recording.APP_ID,
-                                                          recording.recording_id("clean"))
+    assert (entry.application_id, entry.recording_id) == (rerun_base.APP_ID,
+                                                          rerun_base.recording_id("clean"))
     chunks = rr.chunk.RrdReader(path).stream().collect()
     crlb_source = scores.filter(pl.col("method") == METHODS[0])
     for method in METHODS:
@@ -438,7 +438,7 @@ def test_layout_is_a_blueprint_with_the_error_and_consistency_views(runs):
     reader = rr.chunk.RrdReader(runs["clean"].store.path("layout.rbl"))
     assert reader.recordings() == []
     [blueprint] = reader.blueprints()
-    assert blueprint.application_id == recording.APP_ID
+    assert blueprint.application_id == rerun_base.APP_ID
     df = reader.stream(store=blueprint).collect().reader(index="blueprint",
                                                          contents="/**").to_polars()
     origins = {cell[0] for c in df.columns if c.endswith("ViewBlueprint:space_origin")

@@ -20,7 +20,7 @@ from pipeline.core.math.constants import MOON_GM_M3_S2, MOON_RADIUS_M, MOON_ROTA
 from pipeline.errors import PipelineError
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
-from pipeline.viz import recording
+from pipeline.viz.rerun import base
 
 MU, R_M = MOON_GM_M3_S2, MOON_RADIUS_M
 RA_M = R_M + 300e3  # default apoapsis altitude 300 km
@@ -281,8 +281,8 @@ def test_recording_holds_the_promised_entities(workdir):
     store, t = run_trajectory("r", start_s=1000.0, end_s=1100.0)
     path = store.path("trajectory.rrd")
     [entry] = rr.chunk.RrdReader(path).recordings()
-    assert entry.recording_id == recording.recording_id("r")
-    assert entry.application_id == recording.APP_ID
+    assert entry.recording_id == base.recording_id("r")
+    assert entry.application_id == base.APP_ID
     chunks = rr.chunk.RrdReader(path).stream().collect()
     r, q = xyz(t, "r_mci", "_m"), quats(t, "q_mci_from_body")
     f32_atol_m = np.abs(r).max() * F32_REL

@@ -1,0 +1,159 @@
+"""RunConfig: every section of one run, the rules that tie sections together, and the values
+derived from several sections (the navigator's assumed noise, IMU and mounting)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.config.catalogue import CatalogueConfig
+from pipeline.config.checks import MAX_SEED, _check, _num, validate_run_id
+from pipeline.config.detection import DetectionConfig
+from pipeline.config.estimation import EstimationConfig
+from pipeline.config.inertial import MAX_IMU_SAMPLES, AltimeterConfig, ImuConfig
+from pipeline.config.navigation import IdentificationConfig, NavigationConfig
+from pipeline.config.render import RenderConfig
+from pipeline.config.scoring import ScoringConfig, SweepConfig
+from pipeline.config.trajectory import TrajectoryConfig
+from pipeline.core.sensors import imu
+from pipeline.core.sensors import rim_sensor as sensor
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything one run needs; `name` is the scenario, `run_id` the folder under runs/."""
+
+    name: str
+    run_id: str
+    seed: int  # root seed of the run's random streams (detection and estimation)
+    catalogue: CatalogueConfig
+    trajectory: TrajectoryConfig
+    detection: DetectionConfig
+    estimation: EstimationConfig
+    imu: ImuConfig
+    altimeter: AltimeterConfig
+    navigation: NavigationConfig
+    identification: IdentificationConfig
+    render: RenderConfig
+    scoring: ScoringConfig
+    sweep: SweepConfig
+
+    def __post_init__(self) -> None:
+        _num(self.seed, "seed", 0, MAX_SEED)
+        validate_run_id(self.run_id)
+        _check(self.detection.sensor == "paper" or self.trajectory.epoch_utc is not None,
+               "trajectory.epoch_utc", "the physical sensor needs an epoch (the Sun's position)")
+        n = self.navigation
+        if n.crater_updates == "loose" or n.init == "first_fix":
+            _check(n.loose_method in self.estimation.methods, "navigation.loose_method",
+                   f"= {n.loose_method!r} is not run (estimation.methods = "
+                   f"{list(self.estimation.methods)}): its poses are what loose updates and "
+                   "first_fix use")
+            _check(not (n.loose_method == "paper" and self.detection.range_source == "none"),
+                   "navigation.loose_method", "= 'paper' needs ranges (detection.range_source "
+                   "= \"none\"): use \"joint\"")
+        _check(not self.render.enabled or (self.detection.sensor == "physical"
+                                           and self.trajectory.epoch_utc is not None),
+               "render.start_s", "rendering needs detection.sensor = \"physical\" and "
+               "trajectory.epoch_utc (the camera and the Sun)")
+        if self.detection.source == "pixels":
+            _check(self.render.enabled, "detection.source",
+                   "= \"pixels\" needs rendered frames (render.start_s, render.end_s)")
+            t, r = self.trajectory, self.render
+            assert r.start_s is not None and r.end_s is not None
+            lo = max(r.start_s, t.start_s)
+            ends = [e for e in (r.end_s, t.end_s, t.ballistic_impact_s()) if e is not None]
+            first = math.ceil(lo * t.frame_rate_hz - 1e-9) / t.frame_rate_hz
+            _check(first <= min(ends) + 1e-9, "render.start_s",
+                   f"no trajectory frame lies in the rendered window [{r.start_s:g}, "
+                   f"{r.end_s:g}] s: detection.source = \"pixels\" would see nothing")
+            _check(self.identification.mode != "simulated", "detection.source",
+                   "= \"pixels\" needs identification by algorithm (identification.mode): "
+                   "the coin flip cannot name the crater of a detection from pixels")
+        _check(not (self.identification.mode == "tracking" and n.init == "first_fix"),
+               "identification.mode", "= \"tracking\" needs a filter to predict from the start "
+               "(navigation.init = \"dispersed\"); with navigation.init = \"first_fix\" use "
+               "\"tracking_lis\" (lost in space gives the first fix)")
+        _check(self.identification.mode != "simulated" or self.detection.false_detection_share == 0,
+               "detection.false_detection_share", "needs identification by algorithm "
+               "(identification.mode): the coin flip has no crater to name a false detection")
+        if self.estimation.assumed_camera_mounting_deg is not None:
+            _check(self.detection.sensor == "physical", "estimation.assumed_camera_mounting_deg",
+                   "a mounting other than the truth needs detection.sensor = \"physical\" (the "
+                   "paper's camera is the body frame)")
+            _check(self.identification.mode == "simulated",
+                   "estimation.assumed_camera_mounting_deg", "a mounting other than the truth "
+                   "needs identification.mode = \"simulated\" (identification by algorithm "
+                   "uses the true mounting)")
+        _check(self.identification.mode == "simulated" or self.detection.sensor == "physical",
+               "identification.mode", f"= {self.identification.mode!r} matches rim ellipses: it "
+               "needs detection.sensor = \"physical\"")
+        # Cross-section: what the scoring needs of the trajectory (known without thrust).
+        impact = self.trajectory.ballistic_impact_s()
+        if impact is not None:
+            for w in self.scoring.windows:
+                _check(w.start_s < impact, f"scoring.windows[{w.name}].start_s",
+                       f"= {w.start_s:g} s is not before the impact at {impact:.3f} s: the window "
+                       "would hold no frame")
+            _check(self.scoring.final_window_s <= impact, "scoring.final_window_s",
+                   f"= {self.scoring.final_window_s:g} s is longer than the descent "
+                   f"({impact:.3f} s)")
+            n = impact * self.imu.rate_hz
+            _check(n <= MAX_IMU_SAMPLES, "imu.rate_hz",
+                   f"= {self.imu.rate_hz:g} Hz over the {impact:.0f} s descent makes {n:.3g} "
+                   f"samples, above the limit of {MAX_IMU_SAMPLES:,}")
+
+    def navigator_imu(self) -> imu.ImuGrade:
+        """The IMU error model the filter assumes: navigation.assumed_imu_grade's preset, or the
+        simulated IMU's own ("truth")."""
+        assumed = self.navigation.assumed_imu_grade
+        return self.imu.model() if assumed is None else imu.GRADES[assumed]
+
+    def navigator_altimeter_sigma(self, rho_m: float) -> float:
+        """The altimeter noise 1-sigma (m) the filter assumes at a slant range (m)."""
+        assumed = self.navigation.assumed_altimeter_sigma_m
+        a = self.altimeter
+        return a.sigma_m + a.sigma_share * rho_m if assumed is None else assumed
+
+    def sensor_noise(self, navigator: bool) -> sensor.SensorNoise | None:
+        """The physical sensor's noise (None for the paper's sensor): as the navigator assumes it
+        (its assumed pixel noise and range noise, and the catalogue's errors when it weighs
+        them), or the truth's measurement noise (the bound's: the catalogue's errors are the
+        world's, not noise, and the bound is computed at the world's craters)."""
+        d = self.detection
+        if d.sensor != "physical":
+            return None
+        none = sensor.CatalogueErrors(0.0, 0.0, 0.0)
+        if not navigator:
+            return sensor.SensorNoise(d.pixel_sigma_px, d.pixel_camera().fx_px, d.range_source,
+                                      d.sigma_range_m, none)
+        e = self.estimation
+        sigma_px = (d.pixel_sigma_px if e.assumed_pixel_sigma_px is None
+                    else e.assumed_pixel_sigma_px)
+        catalogue = (sensor.CatalogueErrors(d.catalogue_sigma_horizontal_m,
+                                            d.catalogue_sigma_height_m,
+                                            d.catalogue_sigma_diameter_share)
+                     if e.catalogue_sigmas == "truth" else none)
+        return sensor.SensorNoise(sigma_px, d.pixel_camera().fx_px, d.range_source,
+                                  self.navigator_sigmas()[1], catalogue)
+
+    def navigator_misalignment(self) -> np.ndarray | None:
+        """The rotation (3, 3) from the true body frame to the body frame the navigator computes
+        bearings in, R_body_from_cam(assumed) R_cam_from_body(true); None when it assumes the
+        true mounting."""
+        assumed = self.estimation.assumed_camera_mounting_deg
+        if assumed is None:
+            return None
+        d = self.detection
+        nav = dataclasses.replace(d, camera_mounting_deg=assumed).pixel_camera()
+        return nav.dcm_body_from_cam @ d.pixel_camera().dcm_cam_from_body
+
+    def navigator_sigmas(self) -> tuple[float, float]:
+        """(sigma_bearing ~rad, sigma_range_m m) the estimators assume: estimation.assumed_sigma_*,
+        or the truth (detection.sigma_*) where they are "truth". Weights, covariances, gates."""
+        e, d = self.estimation, self.detection
+        return (d.sigma_bearing if e.assumed_sigma_bearing is None else e.assumed_sigma_bearing,
+                d.sigma_range_m if e.assumed_sigma_range_m is None else e.assumed_sigma_range_m)
