@@ -62,16 +62,18 @@ class StageContext:
 class Stage:
     """A stage declaration.
 
-    `reads` names the config it depends on as attribute paths of RunConfig ("detection",
-    "estimation.methods", "seed"); `reads_when(cfg)` the paths it reads with this config only
-    (then keyed only then); `visual_reads` what only its visuals read (keying them alone);
-    `inputs`/`outputs` are artifact file names (`outputs`: the computed data, tables and facts);
-    `visuals` the recordings and reports `record` draws; `optional_inputs` artifacts it may read, `uses_optional` those it reads for a config (their producers are then
-    upstream: keyed, checked, ordered before it); `code` the modules whose sources (with their
-    `pipeline` imports, less `pipeline.viz`) key the computation, `visual_code` those that key
-    the visuals; `external` a fingerprint of what lives outside the run folder (a catalogue
-    file), `fresh_outside` its check at skip time and `verify` a last check just before the commit
-    (e.g. the catalogue was not replaced meanwhile).
+    - `reads`: the config it depends on, as attribute paths of RunConfig ("detection",
+      "estimation.methods", "seed"); `reads_when(cfg)`: the paths it reads with this config only
+      (keyed only then); `visual_reads`: what only its visuals read (keying them alone).
+    - `inputs`, `outputs`: artifact file names (`outputs`: the computed tables and facts);
+      `visuals`: the recordings and reports `record` draws; `optional_inputs`: artifacts it may
+      read, `uses_optional(cfg)` those it reads for a config (their producers are then upstream:
+      keyed, checked, ordered before it).
+    - `code`: the modules whose sources (with their `pipeline` imports, less `pipeline.viz`) key
+      the computation; `visual_code`: those that key the visuals.
+    - `external`: a fingerprint of what lives outside the run folder (a catalogue file),
+      `fresh_outside` its check at skip time, `verify` a last check just before the commit (e.g.
+      the catalogue was not replaced meanwhile).
     """
 
     name: str
