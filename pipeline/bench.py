@@ -31,7 +31,8 @@ from rich.table import Table
 from pipeline.config import load_config
 from pipeline.core.math import frames, tiling
 from pipeline.core.math.constants import MOON_RADIUS_M
-from pipeline.io.store import RunStore, now_iso
+from pipeline.io.files import now_iso
+from pipeline.io.store import RunStore
 from pipeline.workspace import workspace
 
 SHARED_LU = workspace().root.parent / "shared" / "data" / "lu1319381_partial.parquet"
@@ -143,7 +144,7 @@ def bench_query(scratch: Scratch) -> list[Result]:
 def bench_detect(scratch: Scratch) -> list[Result]:
     import polars as pl
 
-    from pipeline.io.catalogue_db import load_recorded_catalogue
+    from pipeline.io.catalogue import load_recorded_catalogue
     from pipeline.ops.detect import detect_all, model_of
 
     scratch.cli("run", "--run-id", "bench-detect")  # catalogue and trajectory
@@ -292,7 +293,7 @@ def _lost_in_space(scratch: Scratch, store: RunStore, radius_km: float, full: bo
     import polars as pl
 
     from pipeline.io import ephemeris
-    from pipeline.io.catalogue_db import load_recorded_catalogue
+    from pipeline.io.catalogue import load_recorded_catalogue
     from pipeline.ops.detect import model_of, true_poses
     from pipeline.ops.identify import IndexCache, identify_frames, model_sensing
     from pipeline.ops.navigate import imu_samples

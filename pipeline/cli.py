@@ -56,7 +56,7 @@ def ingest(
 
     A --source file goes to its own database and run (catalogue/<stem>.duckdb, runs/<stem>/)
     unless --db / --run-id say otherwise: the default catalogue is never replaced by accident."""
-    from pipeline.io.catalogue_db import default_db_path
+    from pipeline.io.catalogue import default_db_path
 
     if source is not None and source != "synthetic" and db is None:
         db = default_db_path(source)

@@ -285,7 +285,7 @@ def test_a_shared_catalogue_is_taken_while_the_database_holds_it(tmp_path: Path,
                                                                  catalogue_db: Path):
     from conftest import run_stages, small_config
 
-    from pipeline.io import catalogue_db as cdb
+    from pipeline.io.catalogue import db as cdb
     from pipeline.io.store import RunStore
 
     cfg = small_config("ingest-only", catalogue_db, {"start_s": 1800.0, "end_s": 1801.0})

@@ -18,7 +18,7 @@ import pytest
 from conftest import REPO, query, shared_file
 
 from pipeline.errors import CatalogueError
-from pipeline.io import catalogue_db as cat
+from pipeline.io import catalogue as cat
 from pipeline.workspace import Workspace
 
 R_M = 1_737_400.0

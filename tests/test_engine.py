@@ -29,13 +29,8 @@ from pipeline.engine.dag import Dag
 from pipeline.engine.executor import Executor
 from pipeline.engine.stage import Stage, StageResult
 from pipeline.errors import PipelineError, StageInputError
-from pipeline.io.store import (
-    RunLockedError,
-    RunStore,
-    atomic_write_text,
-    sha256_file,
-    sweep_dead_temporaries,
-)
+from pipeline.io.files import atomic_write_text, sha256_file, sweep_dead_temporaries
+from pipeline.io.store import RunLockedError, RunStore
 from pipeline.stages import DAG, RUN_TARGET
 
 # Two fake stages: `a` writes a.txt (longer for a larger seed) and a table; `b` reads a.txt and

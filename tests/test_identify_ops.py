@@ -17,7 +17,7 @@ from pipeline.core.math import tiling
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.vision import crater_index
 from pipeline.io import ephemeris
-from pipeline.io.catalogue_db import Catalogue, load_catalogue
+from pipeline.io.catalogue import Catalogue, load_catalogue
 from pipeline.io.pair_index import PairIndexStore
 from pipeline.ops.detect import model_of, true_poses
 from pipeline.ops.identify import IndexCache, identify_frames, model_sensing

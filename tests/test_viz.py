@@ -15,7 +15,7 @@ import pytest
 import rerun as rr
 from scipy.stats import chi2
 
-from pipeline.io.catalogue_db import build_catalogue
+from pipeline.io.catalogue import build_catalogue
 from pipeline.ops.score import by_craters_used
 from pipeline.studies import suslu2025
 from pipeline.viz import viewer

@@ -56,9 +56,10 @@ from pipeline.config import RunConfig, load_config
 from pipeline.engine.executor import Executor
 from pipeline.engine.progress import console, progress_bar
 from pipeline.errors import ConfigError, PipelineError
-from pipeline.io.catalogue_db import Catalogue, load_recorded_catalogue, share_catalogue
+from pipeline.io.catalogue import Catalogue, load_recorded_catalogue, share_catalogue
+from pipeline.io.files import atomic_write_text
 from pipeline.io.rrd import VISUALS_ENV
-from pipeline.io.store import RunStore, atomic_write_text
+from pipeline.io.store import RunStore
 from pipeline.ops.score import NAV_SOURCES, QUANTITY_NAMES, summarize_navigation, windows
 from pipeline.workspace import workspace
 

@@ -19,8 +19,9 @@ from pipeline.engine.fingerprint import code_hash
 from pipeline.engine.progress import console, out
 from pipeline.engine.stage import VISUAL_LAYER, Stage, StageContext
 from pipeline.errors import StageInputError
+from pipeline.io.files import sweep_dead_temporaries
 from pipeline.io.rrd import visuals_enabled
-from pipeline.io.store import RunStore, StageTransaction, sweep_dead_temporaries
+from pipeline.io.store import RunStore, StageTransaction
 from pipeline.workspace import workspace
 
 

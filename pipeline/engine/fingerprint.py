@@ -18,7 +18,8 @@ from functools import cache
 from pathlib import Path
 
 # Modules that carry no stage behaviour: their edits must not make every run stale.
-FRAMEWORK = ("pipeline.errors", "pipeline.engine", "pipeline.io.store", "pipeline.workspace",
+FRAMEWORK = ("pipeline.errors", "pipeline.engine", "pipeline.io.store", "pipeline.io.files",
+             "pipeline.io.transaction", "pipeline.workspace",
              "pipeline.cli")
 FRAMEWORK_EXACT = ("pipeline", "pipeline.stages")  # package inits (the stages' registry)
 

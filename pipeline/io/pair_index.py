@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.vision.crater_index import PairIndex
-from pipeline.io.store import atomic_write_bytes
+from pipeline.io.files import atomic_write_bytes
 
 
 class PairIndexStore:

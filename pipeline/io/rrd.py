@@ -23,7 +23,7 @@ from typing import Any, cast
 
 import rerun as rr
 
-from pipeline.io.store import atomic_write_bytes
+from pipeline.io.files import atomic_write_bytes
 
 
 @contextmanager

@@ -111,9 +111,10 @@ def check_run(run_id: str, runs_dir: Path, marker: str = "config.json", what: st
 def run_catalogue(run_dir: Path, ws: Workspace) -> Path:
     """The catalogue database the run used: the one its ingest stage recorded (catalogue.json),
     else `catalogue.db_path` of its config.json."""
+    from pipeline.io.catalogue.db import run_catalogue_db
     from pipeline.io.store import RunStore
 
-    recorded = RunStore(run_dir.name, root=run_dir.parent).catalogue_db()
+    recorded = run_catalogue_db(RunStore(run_dir.name, root=run_dir.parent))
     if recorded is not None:
         return recorded
     path = run_dir / "config.json"

@@ -25,19 +25,13 @@ holding the same outputs (hard links) and new visuals, so the digest, and what i
 
 from __future__ import annotations
 
-import datetime as dt
 import errno
 import fcntl
-import hashlib
 import json
 import os
-import re
-import secrets
 import shutil
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -45,78 +39,19 @@ import duckdb
 
 from pipeline.config import validate_run_id
 from pipeline.errors import PipelineError, StageInputError
+from pipeline.io.files import (
+    _fsync_dir,
+    atomic_write_text,
+    now_iso,
+    sha256_file,
+    sweep_dead_temporaries,
+)
+from pipeline.io.transaction import ENTRY_FILE, STAGES_DIR, StageTransaction
 from pipeline.workspace import workspace
-
-STAGES_DIR = ".stages"
-ENTRY_FILE = "stage.json"
 
 
 class RunLockedError(PipelineError):
     """Another command holds the run's lock (and we were told not to wait)."""
-
-
-def sha256_file(path: Path, chunk: int = 1 << 22) -> str:
-    """Hex sha256 of a file's bytes, remembered in this process while the file's size, mtime and
-    ctime are unchanged (any write, and any utime that restores the mtime, changes the ctime)."""
-    st = Path(path).stat()
-    return _sha256(str(Path(path).resolve()), st.st_size, st.st_mtime_ns, st.st_ctime_ns, chunk)
-
-
-@cache
-def _sha256(path: str, size: int, mtime_ns: int, ctime_ns: int, chunk: int) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write bytes to `path` through a temporary name, fsync and a rename (ENOSPC/EFBIG raise)."""
-    tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write text to `path` through a temporary name and a rename."""
-    atomic_write_bytes(path, text.encode())
-
-
-def now_iso() -> str:
-    return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
-
-
-def pid_alive(pid: int) -> bool:
-    """True when a process `pid` exists on this machine."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def sweep_dead_temporaries(folder: Path) -> list[Path]:
-    """Remove `.tmp-<pid>-*` files and folders in `folder` whose process is gone."""
-    removed = []
-    for p in folder.glob(".tmp-*"):
-        m = re.match(r"\.tmp-(\d+)-", p.name)
-        if m and not pid_alive(int(m.group(1))):
-            if p.is_dir() and not p.is_symlink():
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                p.unlink(missing_ok=True)
-            removed.append(p)
-    return removed
 
 
 class RunStore:
@@ -203,14 +138,6 @@ class RunStore:
     def recordings(self) -> list[Path]:
         """The run's committed Rerun recordings."""
         return sorted(p for n, p in self.artifacts().items() if n.endswith(".rrd"))
-
-    def catalogue_db(self) -> Path | None:
-        """The catalogue database this run's stages used (recorded by its ingest stage),
-        checked to still hold that catalogue; None when the run has no ingest yet."""
-        from pipeline.io.catalogue_db import recorded_catalogue_db
-
-        p = self.artifacts().get("catalogue.json")
-        return None if p is None else recorded_catalogue_db(p)
 
     def is_fresh(self, stage: str, key: str, upstream: dict[str, str | None] | None = None
                  ) -> bool:
@@ -364,105 +291,5 @@ class RunStore:
         os.replace(tmp, self.duckdb_path)
 
 
-def outputs_digest(outputs: dict[str, Any]) -> str:
-    """sha256 (16 hex) over the outputs' names and sha256s: what a downstream stage read."""
-    h = hashlib.sha256()
-    for name in sorted(outputs):
-        h.update(f"{name}\0{outputs[name]['sha256']}\0".encode())
-    return h.hexdigest()[:16]
-
-
 def _sql_str(text: str) -> str:
     return text.replace("'", "''")
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-class StageTransaction:
-    """A stage's outputs in a fresh folder; `commit` publishes them all at once, `abort` drops."""
-
-    def __init__(self, store: RunStore, stage: str, key: str, inputs: dict[str, Any],
-                 config_hash: str, code_hash: str, force: bool = False,
-                 visuals: tuple[str, ...] = ()):
-        self.store, self.stage, self.key, self.inputs = store, stage, key, inputs
-        self.visuals = set(visuals)  # the visuals: listed apart in the entry
-        self.drawing = False  # while True, every output written is a visual (a figure, ...)
-        self.carried: dict[str, Any] | None = None  # a redraw: the computation's facts kept
-        self.config_hash, self.code_hash = config_hash, code_hash
-        self.force = force  # rebuild shared outputs (the catalogue) even when they look current
-        name = f"{stage}.{time.strftime('%Y%m%dT%H%M%S')}-{secrets.token_hex(4)}"
-        self.folder = store.stages_dir / name
-        self.folder.mkdir()
-        self._outputs: list[str] = []
-        self._published = False
-        self.tables: list[str] = []
-        self.rows: dict[str, int] = {}
-        self._t0 = time.perf_counter()
-
-    def output(self, name: str) -> Path:
-        """Path to write output `name` to (published as runs/<id>/<stage>/<name>); while
-        `drawing`, a visual."""
-        if name not in self._outputs:
-            self._outputs.append(name)
-            if self.drawing:
-                self.visuals.add(name)
-        return self.folder / name
-
-    def table(self, name: str, frame: Any) -> Path:
-        """Write a polars DataFrame as `<name>.parquet`, a table of the run (SQL: `name`)."""
-        path = self.output(f"{name}.parquet")
-        frame.write_parquet(path)
-        self.tables.append(name)
-        self.rows[name] = frame.height
-        return path
-
-    def commit(self, info: dict[str, Any] | None = None, config: dict[str, Any] | None = None,
-               visuals_key: str | None = None) -> dict[str, Any]:
-        """Write the entry beside the outputs, then publish the folder with one atomic rename."""
-        files = {}
-        for name in self._outputs:
-            p = self.folder / name
-            if not p.is_file():
-                raise StageInputError(f"stage {self.stage!r} declared output {name!r} but did "
-                                      "not write it")
-            with open(p, "rb") as f:
-                os.fsync(f.fileno())
-            st = p.stat()
-            files[name] = {"bytes": st.st_size, "sha256": sha256_file(p)}
-        outputs = {n: f for n, f in files.items() if n not in self.visuals}
-        carried = self.carried or {}
-        entry = {
-            "stage": self.stage,
-            "key": self.key,
-            "digest": outputs_digest(outputs),
-            "config_hash": self.config_hash,
-            "code_hash": self.code_hash,
-            "inputs": self.inputs,
-            "outputs": outputs,
-            "visuals": {n: f for n, f in files.items() if n in self.visuals},
-            "visuals_key": visuals_key,
-            "tables": self.tables,
-            "rows": self.rows,
-            "wall_time_s": carried.get("wall_time_s",
-                                       round(time.perf_counter() - self._t0, 3)),
-            "finished_at": now_iso(),
-            "info": carried.get("info", info or {}),
-            "run_config": config,
-        }
-        atomic_write_text(self.folder / ENTRY_FILE, json.dumps(entry, indent=2) + "\n")
-        _fsync_dir(self.folder)
-        self.store._publish(self.stage, self.folder)
-        self._published = True
-        self.store.refresh_views(config)
-        return entry
-
-    def abort(self) -> None:
-        """Remove the fresh folder (unless published); the previous outputs stay as they were."""
-        if not self._published:
-            shutil.rmtree(self.folder, ignore_errors=True)

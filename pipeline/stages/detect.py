@@ -17,7 +17,7 @@ from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.errors import StageInputError
 from pipeline.io import ephemeris
-from pipeline.io.catalogue_db import check_catalogue_unchanged, load_recorded_catalogue
+from pipeline.io.catalogue import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.io.pair_index import PairIndexStore
 from pipeline.ops.detect import detect_all, model_of
 from pipeline.ops.identify import IdentifyOptions, IndexCache, identify_all

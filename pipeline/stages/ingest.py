@@ -16,12 +16,13 @@ from typing import Any
 from pipeline.config import RunConfig, config_hash
 from pipeline.engine.fingerprint import code_hash
 from pipeline.engine.stage import Stage, StageContext, StageResult
-from pipeline.io import catalogue_db as cat
-from pipeline.io.store import atomic_write_text
+from pipeline.errors import CatalogueError
+from pipeline.io import catalogue as cat
+from pipeline.io.files import atomic_write_text
 from pipeline.viz.rerun import base, world
 from pipeline.workspace import workspace
 
-CATALOGUE_CODE = ("pipeline.io.catalogue_db", "pipeline.core.body.synthetic")
+CATALOGUE_CODE = ("pipeline.io.catalogue", "pipeline.core.body.synthetic")
 
 
 def db_path(cfg: RunConfig) -> Path:
@@ -36,7 +37,7 @@ def source_fingerprint(cfg: RunConfig) -> dict[str, Any]:
         return cat.source_key("synthetic")
     path = workspace().resolve(c.source)
     if not path.is_file():
-        raise cat.CatalogueError(f"{path}: catalogue file not found (catalogue.source)")
+        raise CatalogueError(f"{path}: catalogue file not found (catalogue.source)")
     return cat.source_key(path, c.format)
 
 

@@ -27,7 +27,7 @@ from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.io import ephemeris
-from pipeline.io.catalogue_db import check_catalogue_unchanged, load_recorded_catalogue
+from pipeline.io.catalogue import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.io.images import encode_png
 from pipeline.ops import render as ops_render
 from pipeline.ops.detect import model_of, true_poses

@@ -18,7 +18,7 @@ from pipeline.config import RunConfig
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.errors import StageInputError
-from pipeline.io.catalogue_db import check_catalogue_unchanged
+from pipeline.io.catalogue import check_catalogue_unchanged
 from pipeline.io.store import RunStore
 from pipeline.ops.score import (
     CraterLookup,

@@ -58,7 +58,7 @@ def run_recordings(run: str, root: Path | None = None) -> tuple[Path, list[Path]
     """The run folder, its committed recordings and the catalogue recording to attach (the one
     beside the database the run's ingest stage used; None when there is none). A campaign's
     folder (no stages of its own): its recordings (campaign.rrd, a sweep's sweep.rrd)."""
-    from pipeline.io.catalogue_db import recorded_catalogue_db, recorded_facts
+    from pipeline.io.catalogue import recorded_catalogue_db, recorded_facts
     from pipeline.io.store import RunStore
 
     store = RunStore(run, root)

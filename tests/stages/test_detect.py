@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.config import load_config
 from pipeline.core.math import frames
-from pipeline.io.catalogue_db import load_catalogue
+from pipeline.io.catalogue import load_catalogue
 from pipeline.io.store import RunStore
 from pipeline.ops import detect
 

@@ -21,7 +21,8 @@ from typer.testing import CliRunner
 
 from pipeline.cli import app
 from pipeline.config import load_config, to_dict
-from pipeline.io.catalogue_db import CatalogueError
+from pipeline.io.catalogue import CatalogueError
+from pipeline.io.catalogue.db import run_catalogue_db
 from pipeline.io.store import RunStore
 from pipeline.stages import ingest
 from pipeline.viz.rerun import base
@@ -490,7 +491,7 @@ def test_cli_ingest_with_source_and_db(workdir, tmp_path):
     assert result.exit_code == 0, result.output
     assert meta(workdir / "catalogue" / "cli.duckdb")["rows_kept"] == 12
     assert (workdir / "catalogue" / "cli.rrd").is_file()
-    assert RunStore("c").catalogue_db() == workdir / "catalogue" / "cli.duckdb"
+    assert run_catalogue_db(RunStore("c")) == workdir / "catalogue" / "cli.duckdb"
 
 
 def test_cli_ingest_of_a_file_never_replaces_the_default_catalogue(workdir, tmp_path):
@@ -503,7 +504,7 @@ def test_cli_ingest_of_a_file_never_replaces_the_default_catalogue(workdir, tmp_
     result = CliRunner().invoke(app, ["ingest", "--source", str(path)])
     assert result.exit_code == 0, result.output
     assert meta(workdir / "catalogue" / "mine.duckdb")["rows_kept"] == 12
-    assert RunStore("mine").catalogue_db() == workdir / "catalogue" / "mine.duckdb"
+    assert run_catalogue_db(RunStore("mine")) == workdir / "catalogue" / "mine.duckdb"
     assert (meta(default_db), RunStore("default").token("ingest")) == before
 
 
@@ -511,10 +512,10 @@ def test_a_runs_catalogue_rebuilt_by_another_run_is_refused_not_joined(workdir):
     """Run a's tables must never be joined against another catalogue: once run b rebuilds the
     shared database with another config, `sql --run a` and `view a` say so in one line."""
     run_ingest("a", **SMALL)
-    assert RunStore("a").catalogue_db() == workdir / "catalogue" / "craters.duckdb"
+    assert run_catalogue_db(RunStore("a")) == workdir / "catalogue" / "craters.duckdb"
     run_ingest("b", **SMALL, healpix_order=5)  # same database file, another catalogue
     with pytest.raises(CatalogueError, match="no longer holds the catalogue this run used"):
-        RunStore("a").catalogue_db()
+        run_catalogue_db(RunStore("a"))
     for command in (["sql", "--run", "a", "SELECT count(*) FROM craters"], ["view", "a"]):
         result = CliRunner().invoke(app, command)
         assert result.exit_code != 0
@@ -522,4 +523,4 @@ def test_a_runs_catalogue_rebuilt_by_another_run_is_refused_not_joined(workdir):
         assert "no longer holds the catalogue this run used" in text, text
     (RunStore("b").stage_dir("ingest") / "catalogue.json").write_text("{not json")
     with pytest.raises(CatalogueError, match=r"catalogue\.json: unreadable"):
-        RunStore("b").catalogue_db()
+        run_catalogue_db(RunStore("b"))

@@ -17,7 +17,7 @@ from conftest import run_stages, small_config
 
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors import render
-from pipeline.io.catalogue_db import load_catalogue
+from pipeline.io.catalogue import load_catalogue
 from pipeline.io.store import RunStore
 from pipeline.io.tables import xyz
 from pipeline.viz.rerun import rendered as rerun_rendered
