@@ -292,10 +292,12 @@ def _lost_in_space(scratch: Scratch, store: RunStore, radius_km: float, full: bo
                    ) -> list[Result]:
     import polars as pl
 
+    from pipeline.core.navigation.navigator import identify_frames
+    from pipeline.core.sensors.rim_sensing import model_sensing
+    from pipeline.core.vision.index_cache import IndexCache
     from pipeline.io import ephemeris
     from pipeline.io.catalogue import load_recorded_catalogue
     from pipeline.ops.detect import model_of, true_poses
-    from pipeline.ops.identify import IndexCache, identify_frames, model_sensing
     from pipeline.ops.navigate import imu_samples
     from pipeline.stages.detect import identify_options
     from pipeline.stages.navigate import options as navigate_options

@@ -19,6 +19,8 @@ from conftest import REPO, query, shared_file
 
 from pipeline.errors import CatalogueError
 from pipeline.io import catalogue as cat
+from pipeline.io.catalogue import build as catalogue_build
+from pipeline.io.catalogue import formats as catalogue_formats
 from pipeline.workspace import Workspace
 
 R_M = 1_737_400.0
@@ -356,11 +358,12 @@ max_reject_share = 0.1
 
 @pytest.fixture
 def project(tmp_path, monkeypatch) -> Workspace:
-    """A project folder with the shipped sources.toml; catalogue_db's workspace points at it."""
+    """A project folder with the shipped sources.toml; the catalogue's workspace points at it."""
     ws = Workspace(tmp_path / "project")
     ws.catalogue_dir.mkdir(parents=True)
     shutil.copy(REPO / "catalogue" / "sources.toml", ws.sources_toml)
-    monkeypatch.setattr(cat, "workspace", lambda: ws)
+    for module in (catalogue_formats, catalogue_build):
+        monkeypatch.setattr(module, "workspace", lambda: ws)
     return ws
 
 

@@ -15,12 +15,14 @@ from conftest import DEFAULT_TOML, shared_file
 from pipeline.config import load_config
 from pipeline.core.math import tiling
 from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.navigation.navigator import identify_frames
+from pipeline.core.sensors.rim_sensing import model_sensing
 from pipeline.core.vision import crater_index
+from pipeline.core.vision.index_cache import IndexCache
 from pipeline.io import ephemeris
 from pipeline.io.catalogue import Catalogue, load_catalogue
 from pipeline.io.pair_index import PairIndexStore
 from pipeline.ops.detect import model_of, true_poses
-from pipeline.ops.identify import IndexCache, identify_frames, model_sensing
 from pipeline.ops.imu import simulate as simulate_sensors
 from pipeline.ops.navigate import imu_samples
 from pipeline.ops.trajectory import simulate as simulate_trajectory

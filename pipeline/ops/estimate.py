@@ -20,10 +20,9 @@ from pipeline.core.estimation.estimators import (
     RobustOptions,
     estimate_pose,
 )
+from pipeline.core.math.streams import stream
 from pipeline.core.sensors.rim_sensor import SensorNoise, measurement_sigmas
 from pipeline.io.tables import quat_columns, xyz, xyz_columns
-
-_STREAM_TAG = 0xE57  # separates the robust estimator's streams from other users of the seed
 
 
 @dataclass(frozen=True)
@@ -105,8 +104,7 @@ def estimate_all(craters: UsedCraters, opts: EstimateOptions, seed: int, advance
             a, b = craters.start[i], craters.start[i + 1]
             rng = None
             if robust is not None:
-                ss = np.random.SeedSequence(seed, spawn_key=(_STREAM_TAG, int(frame), m_index))
-                rng = np.random.Generator(np.random.PCG64(ss))
+                rng = stream(seed, "estimation", int(frame), m_index)
             sigma_b, sigma_r = craters.sigmas(a, b, (opts.sigma_bearing, opts.sigma_range_m),
                                               opts.sensor_noise)
             t0 = time.perf_counter()

@@ -22,20 +22,14 @@ from pipeline.config import AltimeterConfig, ImuConfig, TrajectoryConfig
 from pipeline.core.dynamics.orbit import Descent
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.math.rotations import dcm_from_q
+from pipeline.core.math.streams import stream
 from pipeline.core.navigation.filter import TIME_TOL_S
 from pipeline.core.sensors import imu
 from pipeline.core.sensors.camera import ray_sphere_distance
 from pipeline.io.tables import quat_columns, xyz_columns
 from pipeline.ops.trajectory import propagate
 
-_IMU_TAG = 0x1A1  # the IMU's random streams within the run seed
-_ALTIMETER_TAG = 0xA17
 BORESIGHT_BODY = np.array([0.0, 0.0, 1.0])
-
-
-def stream(seed: int, tag: int) -> np.random.Generator:
-    """The run's random stream for one purpose (seed, tag)."""
-    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=(tag,))))
 
 
 @dataclass(frozen=True)
@@ -77,7 +71,7 @@ def simulate(traj: TrajectoryConfig, cfg: ImuConfig, alt: AltimeterConfig, seed:
     model = cfg.model()
     dtheta_true, dv_true = imu.true_increments(q, np.asarray(traj.specific_force_body_m_s2),
                                                np.full(n, dt))
-    rng = stream(seed, _IMU_TAG)
+    rng = stream(seed, "imu")
     gyro = imu.draw_triad(rng, model.gyro, n, dt)
     accel = imu.draw_triad(rng, model.accel, n, dt)
     samples = pl.DataFrame({
@@ -121,7 +115,7 @@ def simulate_altimeter(descent: Descent, alt: AltimeterConfig, seed: int,
     b = np.einsum("kij,j->ki", dcm_from_q(q), BORESIGHT_BODY)
     rho_true = ray_sphere_distance(r, b, MOON_RADIUS_M)
     sigma = alt.sigma_m + alt.sigma_share * rho_true
-    rng = stream(seed, _ALTIMETER_TAG)
+    rng = stream(seed, "altimeter")
     rho = rho_true + sigma * rng.standard_normal(t.size)
     in_fault = (t >= alt.fault_start_s) & (t < alt.fault_end_s)
     if alt.fault == "bias":

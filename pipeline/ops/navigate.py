@@ -15,6 +15,7 @@ import numpy as np
 import polars as pl
 from scipy.stats import chi2
 
+from pipeline.core.math.streams import stream
 from pipeline.core.navigation import eskf, filter
 from pipeline.core.navigation.eskf import ATT, BA, BG, N_STATES, POS, VEL, NavState
 from pipeline.core.scoring.status import Status
@@ -23,9 +24,8 @@ from pipeline.core.sensors.rim_sensor import SensorNoise
 from pipeline.errors import StageInputError
 from pipeline.io.tables import quat_columns, quats, xyz, xyz_columns
 from pipeline.ops.estimate import UsedCraters
-from pipeline.ops.imu import stream
 
-_INIT_TAG = 0x1417  # the initial-state dispersion's stream within the run seed
+UPDATE_KINDS = ("craters", "fixes", "altimeter", "velocimeter")  # the models' kinds, in columns
 
 
 @dataclass(frozen=True)
@@ -80,7 +80,7 @@ def initial_state(opts: NavigateOptions, truth: pl.DataFrame, estimates: pl.Data
     the start): the truth plus a seeded draw (dispersed), or the first ok fix of loose_method for
     position and attitude with a drawn velocity error (first_fix). Biases start at 0 with the
     IMU model's switch-on sigma."""
-    rng = stream(seed, _INIT_TAG)
+    rng = stream(seed, "init")
     true = truth_states(truth)
     t = truth["t_s"].to_numpy()
     sig = np.zeros(N_STATES)
@@ -211,7 +211,7 @@ def _table(records: list[filter.Record], truth: pl.DataFrame, dr: NavState,
     nees = np.full((n, 4), np.nan)
     sm_err = np.full((n, 9), np.nan)
     sm_sigma = np.full((n, 9), np.nan)
-    counts = np.zeros((n, 6), dtype=np.int64)
+    counts = np.zeros((n, 2 * len(UPDATE_KINDS)), dtype=np.int64)
     nis = np.full(n, np.nan)
     nis_dof = np.zeros(n, dtype=np.int64)
     for k, rec in enumerate(records):
@@ -226,8 +226,7 @@ def _table(records: list[filter.Record], truth: pl.DataFrame, dr: NavState,
         for j, block in enumerate((POS, VEL, ATT)):
             nees[i, j] = filter.nees(err[block], rec.p[block, block])
         nees[i, 3] = filter.nees(err[:9], rec.p[:9, :9])
-        counts[i] = (rec.craters_used, rec.craters_rejected, rec.fixes_used, rec.fixes_rejected,
-                     rec.altimeter_used, rec.altimeter_rejected)
+        counts[i] = [n.get(kind, 0) for kind in UPDATE_KINDS for n in (rec.used, rec.rejected)]
         nis[i], nis_dof[i] = rec.nis, rec.nis_dof
         if smooth and rec.smoothed_x is not None and rec.smoothed_p is not None:
             sm_err[i] = filter.true_error(x_true, rec.smoothed_x)[:9]
@@ -269,9 +268,8 @@ def _table(records: list[filter.Record], truth: pl.DataFrame, dr: NavState,
         "cov_pos": pl.Series(cov_pos, dtype=pl.Array(pl.Float64, 9)),
         "nees_pos": nees[:, 0], "nees_vel": nees[:, 1], "nees_att": nees[:, 2],
         "nees": nees[:, 3], "nis": nis, "nis_dof": nis_dof,
-        "craters_used": counts[:, 0], "craters_rejected": counts[:, 1],
-        "fixes_used": counts[:, 2], "fixes_rejected": counts[:, 3],
-        "altimeter_used": counts[:, 4], "altimeter_rejected": counts[:, 5],
+        **{f"{kind}_{what}": counts[:, 2 * k + j] for k, kind in enumerate(UPDATE_KINDS)
+           for j, what in enumerate(("used", "rejected"))},
         **xyz_columns("imu_only_err_pos", "_m", dr_err),
         **xyz_columns("smoothed_err_pos", "_m", sm_err[:, POS]),
         **xyz_columns("smoothed_err_vel", "_m_s", sm_err[:, VEL]),

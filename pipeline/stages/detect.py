@@ -13,6 +13,8 @@ import polars as pl
 from pipeline.config import RunConfig
 from pipeline.core.estimation.estimators import RobustOptions
 from pipeline.core.navigation.eskf import BA, BG, N_STATES, VEL
+from pipeline.core.vision.identify import IdentifyOptions
+from pipeline.core.vision.index_cache import IndexCache
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.errors import StageInputError
@@ -20,7 +22,7 @@ from pipeline.io import ephemeris
 from pipeline.io.catalogue import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.io.pair_index import PairIndexStore
 from pipeline.ops.detect import detect_all, model_of
-from pipeline.ops.identify import IdentifyOptions, IndexCache, identify_all
+from pipeline.ops.identify import identify_all
 from pipeline.stages.estimate import options as estimate_options
 from pipeline.stages.navigate import options as navigate_options
 from pipeline.viz.draw import record_detect

@@ -14,7 +14,6 @@ import numpy as np
 import polars as pl
 
 from pipeline.config import RunConfig
-from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.navigation.filter import FilterOptions
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.estimate import UsedCraters
@@ -44,7 +43,7 @@ def options(cfg: RunConfig) -> NavigateOptions:
         imu_rate_hz=cfg.imu.rate_hz,
         filter=FilterOptions(noise=process_noise(assumed_imu), sigma_bearing=sigma_bearing,
                              sigma_range_m=sigma_range_m, gate_probability=n.gate_probability,
-                             gravity=n.gravity, moon_radius_m=MOON_RADIUS_M,
+                             gravity=n.gravity,
                              max_step_s=n.max_step_s, smooth=n.smoother))
 
 

@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import polars as pl
 
 from pipeline.config import RunConfig
+from pipeline.core.math.streams import stream
 from pipeline.core.sensors import render
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.engine.progress import progress_bar
@@ -32,8 +32,6 @@ from pipeline.io.images import encode_png
 from pipeline.ops import render as ops_render
 from pipeline.ops.detect import model_of, true_poses
 from pipeline.viz.draw import record_render
-
-RENDER_TAG = 0x12E4D  # the rendering's streams (roughness, sensor noise) within the run seed
 
 
 def options(cfg: RunConfig) -> ops_render.RenderOptions:
@@ -77,8 +75,7 @@ def run(ctx: StageContext) -> StageResult:
         frame = chosen["frame"].to_numpy()
         with progress_bar("rendering and detecting", chosen.height) as advance:
             for i in range(chosen.height):
-                rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(
-                    cfg.seed, spawn_key=(RENDER_TAG, int(frame[i])))))
+                rng = stream(cfg.seed, "render", int(frame[i]))
                 img = ops_render.render_and_detect(model, craters, world, r_mcmf[i],
                                                    dcm_body_from_mcmf[i], sun[i], rng, opts)
                 results.append((int(frame[i]), float(t_s[i]), img))

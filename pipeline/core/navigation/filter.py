@@ -13,86 +13,27 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
 
-from pipeline.core.estimation import measurement
-from pipeline.core.math.rotations import q_log, q_multiply
 from pipeline.core.navigation import eskf
-from pipeline.core.navigation.eskf import POSE, NavState
+from pipeline.core.navigation.eskf import NavState
+from pipeline.core.navigation.models import (
+    BORESIGHT_BODY,
+    MODELS,
+    AltimeterSample,
+    CraterFrame,
+    FilterOptions,
+    Gates,
+    Measurement,
+    PoseFix,
+    Record,
+    VelocimeterSample,
+)
 from pipeline.core.navigation.strapdown import Trajectory, gravity_gradient, mechanise
 
-BORESIGHT_BODY = np.array([0.0, 0.0, 1.0])  # the camera and altimeter look along body +z
+__all__ = ["BORESIGHT_BODY", "AltimeterSample", "CraterFrame", "FilterOptions", "ImuSamples",
+           "Measurement", "PoseFix", "Record", "VelocimeterSample", "dead_reckon", "nees",
+           "predict", "run", "true_error", "update"]
 TIME_TOL_S = 1e-6  # times closer than this are one time (k / rate computed two ways)
-
-
-@dataclass(frozen=True)
-class CraterFrame:
-    """Used craters of one camera frame as the navigator sees them (tightly coupled update)."""
-
-    t_s: float
-    frame: int
-    c_mci_m: np.ndarray  # (N, 3) catalogue positions of the craters they were identified as
-    u_body: np.ndarray  # (N, 3) measured unit bearings
-    rho_m: np.ndarray  # (N,) measured ranges (NaN: no range)
-    sigma_bearing: float | np.ndarray | None = None  # per crater (N,); None: FilterOptions'
-    sigma_range_m: float | np.ndarray | None = None
-
-
-@dataclass(frozen=True)
-class PoseFix:
-    """A single-frame pose and its covariance over [dr MCI, dtheta body] (loosely coupled)."""
-
-    t_s: float
-    frame: int
-    r_mci_m: np.ndarray
-    q_mci_from_body: np.ndarray
-    cov: np.ndarray  # (6, 6)
-
-
-@dataclass(frozen=True)
-class AltimeterSample:
-    """A laser altimeter's slant range (m) along the boresight and its assumed 1-sigma (m)."""
-
-    t_s: float
-    rho_m: float
-    sigma_m: float
-
-
-Measurement = CraterFrame | PoseFix | AltimeterSample
-
-
-@dataclass(frozen=True)
-class FilterOptions:
-    """What the navigator assumes and how it gates."""
-
-    noise: eskf.ProcessNoise
-    sigma_bearing: float  # assumed bearing noise (~rad per tangent axis)
-    sigma_range_m: float  # assumed crater range noise (m)
-    gate_probability: float | None  # chi-square gate per measurement; None: no gate
-    gravity: str  # the navigator's gravity model (strapdown.GRAVITY_MODELS)
-    moon_radius_m: float  # the altimeter's reference sphere (m)
-    max_step_s: float = 1.0  # longest covariance propagation step (s)
-    smooth: bool = False  # run the RTS smoother too
-
-
-@dataclass
-class Record:
-    """The filter at a record time: nominal state, covariance, and the updates applied at that
-    time (counts of used and rejected craters / fixes / altimeter samples, NIS and its dof)."""
-
-    t_s: float
-    x: NavState
-    p: np.ndarray
-    craters_used: int = 0
-    craters_rejected: int = 0
-    fixes_used: int = 0
-    fixes_rejected: int = 0
-    altimeter_used: int = 0
-    altimeter_rejected: int = 0
-    nis: float = float("nan")
-    nis_dof: int = 0
-    smoothed_x: NavState | None = None
-    smoothed_p: np.ndarray | None = None
 
 
 @dataclass
@@ -170,7 +111,7 @@ def run(x0: NavState, p0: np.ndarray, t0_s: float, imu: ImuSamples,
     (sorted, unique). Measurements at a record time are applied before it is recorded; the
     counts and NIS of updates between two record times go to the next record. Times closer than
     TIME_TOL_S are one time (a frame and a grid point computed two ways)."""
-    gate = gates(opts)
+    gate = Gates(opts.gate_probability)
     record_list = _merge_times(np.asarray(record_times_s, dtype=float))
     record_list = record_list[record_list >= t0_s - TIME_TOL_S]
     record_set = {float(t) for t in record_list}
@@ -213,13 +154,6 @@ def run(x0: NavState, p0: np.ndarray, t0_s: float, imu: ImuSamples,
     return records
 
 
-def gates(opts: FilterOptions) -> dict[int, float]:
-    """The chi-square gate per degrees of freedom of a measurement (empty: no gate)."""
-    if opts.gate_probability is None:
-        return {}
-    return {dof: float(chi2.ppf(opts.gate_probability, dof)) for dof in (1, 2, 3, 6)}
-
-
 def predict(x: NavState, p: np.ndarray, t_a: float, t_b: float, imu: ImuSamples,
             opts: FilterOptions) -> tuple[NavState, np.ndarray]:
     """The filter's prediction from t_a to t_b (s) on the IMU, in steps of at most max_step_s
@@ -234,7 +168,7 @@ def predict(x: NavState, p: np.ndarray, t_a: float, t_b: float, imu: ImuSamples,
 def update(x: NavState, p: np.ndarray, t_s: float, batch: list[Measurement],
            opts: FilterOptions) -> Record:
     """The filter's updates at one time (as in `run`, gated), and their counts and NIS."""
-    return _apply(x, p, t_s, batch, opts, gates(opts))
+    return _apply(x, p, t_s, batch, opts, Gates(opts.gate_probability))
 
 
 def _merge_times(t_s: np.ndarray) -> np.ndarray:
@@ -260,12 +194,8 @@ def _snap(t: float, times: np.ndarray) -> float:
 
 def _carry(into: Record, update: Record) -> None:
     """Add an unrecorded step's update counts and NIS to a record."""
-    into.craters_used += update.craters_used
-    into.craters_rejected += update.craters_rejected
-    into.fixes_used += update.fixes_used
-    into.fixes_rejected += update.fixes_rejected
-    into.altimeter_used += update.altimeter_used
-    into.altimeter_rejected += update.altimeter_rejected
+    for kind in {*update.used, *update.rejected}:
+        into.count(kind, update.used.get(kind, 0), update.rejected.get(kind, 0))
     if update.nis_dof:
         into.nis = (0.0 if not into.nis_dof else into.nis) + update.nis
         into.nis_dof += update.nis_dof
@@ -302,130 +232,19 @@ def path_midpoint(path: Trajectory, x: NavState) -> NavState:
 
 
 def _apply(x: NavState, p: np.ndarray, t: float, batch: list[Measurement], opts: FilterOptions,
-           gate: dict[int, float]) -> Record:
-    """All updates at one time, each measurement gated against the state before the batch."""
+           gates: Gates) -> Record:
+    """All updates at one time, each measurement by its model (`models.MODELS`), gated against
+    the state before its own update."""
     rec = Record(t, x, p)
     nis_total, dof_total = 0.0, 0
     for m in batch:
-        if isinstance(m, CraterFrame):
-            e, j, per_dof = _crater_system(rec.x, m, opts)
-            if e.shape[0] == 0:
-                continue
-            keep = _gate(rec.p[np.ix_(POSE, POSE)], e, j,
-                         None if not gate else np.where(per_dof == 3, gate[3], gate[2]))
-            rec.craters_used += int(keep.sum())
-            rec.craters_rejected += int((~keep).sum())
-            if keep.any():
-                up = _iterated_crater_update(rec.x, rec.p, _subset(m, keep), opts)
-                rec.x = eskf.inject(rec.x, up.dx)
-                rec.p = eskf.reset_covariance(up.p, up.dx)
-                nis_total += up.nis
-                dof_total += int(per_dof[keep].sum())
-            continue
-        elif isinstance(m, PoseFix):
-            e, j = _pose_system(rec.x, m)
-            keep = _gate(rec.p[np.ix_(POSE, POSE)], e[None], j[None], gate.get(6))
-            rec.fixes_used += int(keep.sum())
-            rec.fixes_rejected += int((~keep).sum())
-            dof = 6 if keep[0] else 0
-        else:
-            rho, jac = eskf.altimeter_jacobian(rec.x, BORESIGHT_BODY, opts.moon_radius_m)
-            if not np.isfinite(rho):
-                continue
-            e = np.array([(m.rho_m - rho) / m.sigma_m])
-            j = jac[None, :] / m.sigma_m
-            keep = _gate(rec.p[np.ix_(POSE, POSE)], e[None], j[None], gate.get(1))
-            rec.altimeter_used += int(keep.sum())
-            rec.altimeter_rejected += int((~keep).sum())
-            dof = 1 if keep[0] else 0
-        if dof == 0:
-            continue
-        up = eskf.information_update(rec.p, POSE, e, j)
-        rec.x = eskf.inject(rec.x, up.dx)
-        rec.p = eskf.reset_covariance(up.p, up.dx)
-        nis_total += up.nis
-        dof_total += dof
+        nis, dof = MODELS[type(m)].apply(rec, m, opts, gates)
+        if dof:
+            nis_total += nis
+            dof_total += dof
     if dof_total:
         rec.nis, rec.nis_dof = nis_total, dof_total
     return rec
-
-
-IEKF_MAX_ITERATIONS = 10
-IEKF_STEP_TOL = 1e-3  # stop when a relinearised step moves the position below this (m)
-
-
-def _iterated_crater_update(x: NavState, p: np.ndarray, m: CraterFrame, opts: FilterOptions
-                            ) -> eskf.Update:
-    """The crater update, relinearised about its own result until it stops moving (the iterated
-    EKF: Bell & Cathey, IEEE TAC 38(2), 1993; a Gauss-Newton on the prior and the craters):
-    with J_i, e_i at the iterate x_i = x + dx_i, the update of the linearised system
-    e_i + J_i dx_i. One pass is the EKF; more matter when the prior is far off (a start
-    hundreds of metres out collapses the covariance in one step otherwise). The NIS is the
-    first pass's (at the prior, as the gate)."""
-    dx = np.zeros(eskf.N_STATES)
-    first: eskf.Update | None = None
-    up = None
-    for _ in range(IEKF_MAX_ITERATIONS):
-        e, j, _ = _crater_system(eskf.inject(x, dx), m, opts)
-        e, j = e.reshape(-1), j.reshape(-1, 6)
-        up = eskf.information_update(p, POSE, e + j @ dx[POSE], j)
-        first = first or up
-        step = up.dx - dx
-        dx = up.dx
-        if float(np.linalg.norm(step[:3])) < IEKF_STEP_TOL:
-            break
-    assert up is not None and first is not None
-    return eskf.Update(up.dx, up.p, first.nis)
-
-
-def _usable(m: CraterFrame) -> np.ndarray:
-    """Rows (N,) with a finite position and bearing and no infinite range (NaN: no range)."""
-    return (np.all(np.isfinite(m.c_mci_m), axis=1) & np.all(np.isfinite(m.u_body), axis=1)
-            & ~np.isinf(m.rho_m))
-
-
-def _subset(m: CraterFrame, keep: np.ndarray) -> CraterFrame:
-    """The frame's craters that passed the gate (rows as `_crater_system` keeps them)."""
-    rows = np.flatnonzero(_usable(m))[keep]
-
-    def pick(sigma: float | np.ndarray | None) -> float | np.ndarray | None:
-        return sigma if sigma is None or np.ndim(sigma) == 0 else np.asarray(sigma)[rows]
-
-    return CraterFrame(m.t_s, m.frame, m.c_mci_m[rows], m.u_body[rows], m.rho_m[rows],
-                       pick(m.sigma_bearing), pick(m.sigma_range_m))
-
-
-def _crater_system(x: NavState, m: CraterFrame, opts: FilterOptions
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Whitened residuals (N, 4) and Jacobians (N, 4, 6) over [dr, dtheta] of a frame's craters
-    (the shared measurement model) and each one's degrees of freedom (3, or 2 without a range);
-    rows with a non-finite position or bearing, or an infinite range, dropped (`_usable`)."""
-    ok = _usable(m)
-    sigma_b = opts.sigma_bearing if m.sigma_bearing is None else measurement.per_crater(
-        m.sigma_bearing, ok)
-    sigma_r = opts.sigma_range_m if m.sigma_range_m is None else measurement.per_crater(
-        m.sigma_range_m, ok)
-    e, j, _ = measurement.whitened_system(
-        x.r_mci_m, x.q_mci_from_body, m.c_mci_m[ok], m.u_body[ok], m.rho_m[ok],
-        sigma_bearing=sigma_b, sigma_range_m=sigma_r)
-    return e, j, np.where(np.isnan(m.rho_m[ok]), 2, 3)
-
-
-def _pose_system(x: NavState, m: PoseFix) -> tuple[np.ndarray, np.ndarray]:
-    """Whitened residual (6,) and Jacobian (6, 6) of a pose fix over [dr, dtheta]."""
-    q_inv = x.q_mci_from_body * np.array([-1.0, -1.0, -1.0, 1.0])
-    e = np.concatenate([m.r_mci_m - x.r_mci_m, q_log(q_multiply(q_inv, m.q_mci_from_body))])
-    chol = np.linalg.cholesky(m.cov)
-    return np.linalg.solve(chol, e), np.linalg.inv(chol)
-
-
-def _gate(p_pose: np.ndarray, e: np.ndarray, j: np.ndarray,
-          threshold: float | np.ndarray | None) -> np.ndarray:
-    """Which of N measurements (whitened e (N, m), J (N, m, 6)) pass the chi-square gate (one
-    threshold, or one per measurement)."""
-    if threshold is None:
-        return np.ones(e.shape[0], dtype=bool)
-    return eskf.per_measurement_nis(p_pose, e, j) <= threshold
 
 
 def _smooth(records: list[Record], steps: list[_Step], times: list[float], t0_s: float) -> None:

@@ -17,11 +17,10 @@ import numpy as np
 from pipeline.core.body import illumination
 from pipeline.core.estimation import measurement
 from pipeline.core.math import tiling
+from pipeline.core.math.streams import seed_sequence
 from pipeline.core.sensors import camera, conics
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.core.vision import identification
-
-_STREAM_TAG = 0xDE7EC7  # separates detection streams from other users of the run seed
 
 # The physical sensor's per-detection columns: the measured and the true rim ellipse
 # (undistorted image, px; angle of the major axis from +u towards +v), the apparent diameter
@@ -120,7 +119,7 @@ def frame_rngs(seed: int, frame: int) -> dict[str, np.random.Generator]:
     """Independent generators of one frame: identify, match, select, noise; the physical
     sensor's detect and false detections; identification's star tracker and verification (later
     children of the same SeedSequence: the earlier ones are unchanged)."""
-    ss = np.random.SeedSequence(entropy=seed, spawn_key=(_STREAM_TAG, frame))
+    ss = seed_sequence(seed, "detection", frame)
     names = ("identify", "match", "select", "noise", "detect", "false", "star", "verify")
     return {n: np.random.Generator(np.random.PCG64(s))
             for n, s in zip(names, ss.spawn(len(names)), strict=True)}
