@@ -13,9 +13,9 @@ Frame after frame, in time order, like the flight software:
 - lost in space: without a usable prior (no filter state, a prior too wide for tracking, or
   tracking that failed `lost_after_frames` frames in a row), the detections' pair invariants are
   looked up in the index of the region around a rough position
-  (`pipeline.core.vision.crater_index`), with the attitude from a star tracker; each hypothesis is verified by the tracking match under
-  its pose and a robust pose, and accepted only when it is unambiguous. A fix (re)starts the
-  filter.
+  (`pipeline.core.vision.crater_index`), with the attitude from a star tracker; each hypothesis
+  is verified by the tracking match under its pose and a robust pose, and accepted only when it
+  is unambiguous. A fix (re)starts the filter.
 
 The truth (which world crater a detection came from, or none: a false detection) is kept apart
 and only written for scoring. The tracker's filter is identification's own (the navigation
