@@ -27,7 +27,7 @@ from pipeline.config import load_config
 from pipeline.engine import fingerprint
 from pipeline.engine.dag import Dag
 from pipeline.engine.executor import Executor
-from pipeline.engine.stage import Stage, StageResult
+from pipeline.engine.stage import VISUAL_LAYER, Stage, StageResult
 from pipeline.errors import PipelineError, StageInputError
 from pipeline.io.files import atomic_write_text, sha256_file, sweep_dead_temporaries
 from pipeline.io.store import RunLockedError, RunStore
@@ -133,19 +133,22 @@ def live_folders(store: RunStore) -> set[str]:
 
 
 def test_the_dag_follows_from_the_declarations():
-    assert set(DAG.upstream["detect"]) == {"ingest", "trajectory"}
-    assert DAG.upstream["ingest"] == DAG.upstream["trajectory"] == ()
-    assert set(DAG.upstream["estimate"]) == {"detect", "trajectory"}
-    assert set(DAG.upstream["imu"]) == {"trajectory"}
-    assert set(DAG.upstream["navigate"]) == {"trajectory", "imu", "detect", "estimate"}
-    assert set(DAG.upstream["score"]) == {"ingest", "trajectory", "detect", "estimate",
-                                          "navigate"}
-    for name, ups in DAG.upstream.items():  # each upstream stage writes an input of the stage
-        for u in ups:
-            assert set(DAG[u].outputs) & set(DAG[name].inputs), (name, u)
-    order = list(DAG.order)
-    assert all(order.index(u) < order.index(n) for n in order for u in DAG.upstream[n])
     default = load_config("default")
+
+    def up(name: str) -> set[str]:
+        return set(DAG.upstream_for(name, default))
+
+    assert up("detect") == {"ingest", "trajectory"}
+    assert up("ingest") == up("trajectory") == set()
+    assert up("estimate") == {"detect", "trajectory"}
+    assert up("imu") == {"trajectory"}
+    assert up("navigate") == {"trajectory", "imu", "detect", "estimate"}
+    assert up("score") == {"ingest", "trajectory", "detect", "estimate", "navigate"}
+    active = [n for n in DAG.order if DAG.is_active(n, default)]
+    for name in active:  # each upstream stage writes an input of the stage
+        for u in up(name):
+            assert set(DAG[u].outputs) & set(DAG[name].inputs), (name, u)
+    assert all(active.index(u) < active.index(n) for n in active for u in up(n))
     assert DAG.upstream_closure([RUN_TARGET], default) == [
         "ingest", "trajectory", "imu", "detect", "estimate", "navigate", "score"]
     # without a config: every stage it may need (the rendered images when they are the source)
@@ -163,7 +166,7 @@ def test_the_dag_follows_from_the_declarations():
     assert set(DAG.upstream_for("detect", tracking)) == {"ingest", "trajectory", "imu"}
     assert DAG.downstream_of("imu", tracking) == ["imu", "detect", "estimate", "navigate",
                                                   "score"]
-    assert DAG.producer["catalogue.json"] == "ingest"
+    assert DAG.producers["catalogue.json"] == ("ingest",)
 
 
 def test_an_unknown_stage_is_an_error_listing_the_stages():
@@ -183,7 +186,8 @@ def test_cycles_two_writers_and_unwritten_inputs_are_errors():
         Dag([stage("a", ["y"], ["x"]), stage("b", ["x"], ["y"])])
     with pytest.raises(PipelineError, match="depends on itself"):
         Dag([stage("a", ["x"], ["x"])])
-    with pytest.raises(PipelineError, match="artifact 'x' written by both 'a' and 'b'"):
+    with pytest.raises(PipelineError, match=r"artifact 'x' written by \['a', 'b'\]: "
+                       "alternative producers each need `active`"):
         Dag([stage("a", [], ["x"]), stage("b", [], ["x"])])
     with pytest.raises(PipelineError, match=r"stage 'b' reads \['z'\], which no stage writes"):
         Dag([stage("a", [], ["x"]), stage("b", ["x", "z"], ["y"])])
@@ -196,20 +200,21 @@ def test_cycles_two_writers_and_unwritten_inputs_are_errors():
 # --- code hashes ----------------------------------------------------------------------------------
 
 
-def hashes_with_edit(monkeypatch, module: str) -> tuple[dict, dict, dict, dict]:
-    """Code hashes and keys of every real stage, before and after appending a comment to
-    `module`'s source (as `_source` reads it; the file is not touched)."""
+def hashes_with_edit(monkeypatch, module: str) -> tuple[dict, dict, dict, dict, dict, dict]:
+    """Computation code hashes, keys and visuals keys of every real stage, before and after
+    appending a comment to `module`'s source (as `_source` reads it; the file is not touched)."""
     cfg = load_config(DEFAULT_TOML, "r")
     caches = (fingerprint._imports, fingerprint.closure, fingerprint.code_hash)
 
-    def measure() -> tuple[dict, dict]:
+    def measure() -> tuple[dict, dict, dict]:
         for f in caches:
             f.cache_clear()
         ex = Executor(DAG)
-        return ({n: fingerprint.code_hash(s.code) for n, s in DAG.stages.items()},
-                {n: ex.key(n, cfg) for n in DAG.order})
+        return ({n: fingerprint.code_hash(s.code, VISUAL_LAYER) for n, s in DAG.stages.items()},
+                {n: ex.key(n, cfg) for n in DAG.order},
+                {n: ex.visuals_key(n, cfg) for n in DAG.order})
 
-    code0, key0 = measure()
+    code0, key0, vis0 = measure()
     original = fingerprint._source
 
     def edited(name: str):
@@ -220,38 +225,48 @@ def hashes_with_edit(monkeypatch, module: str) -> tuple[dict, dict, dict, dict]:
 
     monkeypatch.setattr(fingerprint, "_source", edited)
     try:
-        code1, key1 = measure()
+        code1, key1, vis1 = measure()
     finally:
         monkeypatch.undo()
         for f in caches:
             f.cache_clear()
-    return code0, code1, key0, key1
+    return code0, code1, key0, key1, vis0, vis1
 
 
 def changed(before: dict, after: dict) -> set[str]:
     return {n for n in before if before[n] != after[n]}
 
 
-def test_a_comment_in_the_report_module_rekeys_only_the_stages_that_import_it(monkeypatch):
-    code0, code1, key0, key1 = hashes_with_edit(monkeypatch, "pipeline.viz.report")
-    importers = {n for n, s in DAG.stages.items()
-                 if "pipeline.viz.report" in fingerprint.closure(s.code)}
-    assert importers == {"score"}
-    assert changed(code0, code1) == importers
-    assert changed(key0, key1) == importers  # nothing is downstream of score
+def test_a_comment_in_the_report_module_redraws_only_the_scores_visuals(monkeypatch):
+    code0, code1, key0, key1, vis0, vis1 = hashes_with_edit(monkeypatch,
+                                                            "pipeline.viz.report.run_report")
+    drawers = {n for n, s in DAG.stages.items()
+               if "pipeline.viz.report.run_report" in fingerprint.closure(s.visual_code)}
+    assert drawers == {"score"}
+    assert code0 == code1 and key0 == key1  # no computation is keyed on a report
+    assert changed(vis0, vis1) == drawers
+
+
+def test_a_recording_edit_redraws_the_recordings_and_recomputes_nothing(monkeypatch):
+    # every recording carries the run's layout, which names the navigation's plots
+    code0, code1, key0, key1, vis0, vis1 = hashes_with_edit(monkeypatch,
+                                                            "pipeline.viz.rerun.navigation")
+    assert code0 == code1 and key0 == key1
+    assert changed(vis0, vis1) == {n for n, s in DAG.stages.items() if s.visuals}
 
 
 def test_an_operation_edit_rekeys_its_stages_and_their_downstream(monkeypatch):
-    code0, code1, key0, key1 = hashes_with_edit(monkeypatch, "pipeline.ops.detect")
+    code0, code1, key0, key1, vis0, vis1 = hashes_with_edit(monkeypatch, "pipeline.ops.detect")
     assert changed(code0, code1) == {"render", "detect"}
     assert changed(key0, key1) == {"render", "detect", "estimate", "navigate", "score"}
+    assert changed(vis0, vis1) == changed(key0, key1)  # visuals follow what they draw
 
 
 @pytest.mark.parametrize("module", ["pipeline.io.store", "pipeline.engine.executor",
                                     "pipeline.workspace"])
 def test_framework_edits_rekey_nothing(monkeypatch, module):
-    code0, code1, key0, key1 = hashes_with_edit(monkeypatch, module)
-    assert code0 == code1 and key0 == key1
+    code0, code1, key0, key1, vis0, vis1 = hashes_with_edit(monkeypatch, module)
+    assert code0 == code1 and key0 == key1 and vis0 == vis1
 
 
 # --- failures and kills ---------------------------------------------------------------------------
@@ -406,8 +421,10 @@ def test_a_damaged_output_makes_its_stage_stale(fake, tmp_path, damage):
     assert ex.is_fresh("b", cfg, store) and ex.execute(ex.plan(cfg, ["b"]), store) == []
     with pytest.raises(StageInputError, match="needs stage 'a'"):
         ex.execute(ex.plan(cfg, ["b"], force=["b"]), store)
-    assert fake.execute(root, DEFAULT_TOML, 1) == ["a", "b"]  # b read the old commit of a
+    # a is recomputed; its outputs are the same bytes again, so b, which read them, stays
+    assert fake.execute(root, DEFAULT_TOML, 1) == ["a"]
     assert store.path("a.txt").read_text() == text
+    assert ex.is_fresh("b", cfg, store)
 
 
 def test_an_output_touched_but_unchanged_stays_fresh(fake, tmp_path):
@@ -421,19 +438,25 @@ def test_an_output_touched_but_unchanged_stays_fresh(fake, tmp_path):
     assert fake.execute(root, DEFAULT_TOML, 1) == []
 
 
-def test_an_upstream_recommit_makes_the_downstream_stale(fake, tmp_path):
+def test_an_upstream_recommit_with_other_outputs_makes_the_downstream_stale(fake, tmp_path,
+                                                                           monkeypatch):
     root = tmp_path / "runs"
     fake.execute(root, DEFAULT_TOML, 1)
     store = RunStore("r", root)
     ex, cfg = Executor(fake.DAG), fake.config(DEFAULT_TOML, 1)
-    key_b = store.entry("b")["key"]
+    key_b, digest_a = store.entry("b")["key"], store.digest("a")
+    # the same bytes again: b read exactly these outputs, and stays
+    assert ex.execute(ex.plan(cfg, ["a"], force=["a"]), store) == ["a"]
+    assert store.digest("a") == digest_a and ex.is_fresh("b", cfg, store)
+    # other bytes under the same key (what a nondeterministic stage would do)
+    monkeypatch.setattr(fake, "text_a", lambda seed: f"other {seed}\n")
     assert ex.execute(ex.plan(cfg, ["a"], force=["a"]), store) == ["a"]
     assert ex.key("b", cfg) == key_b  # the same key...
-    assert store.entry("b")["inputs"]["a"]["token"] != store.token("a")
-    assert not ex.is_fresh("b", cfg, store)  # ...but it read another commit of a
+    assert store.entry("b")["inputs"]["a"]["digest"] != store.digest("a")
+    assert not ex.is_fresh("b", cfg, store)  # ...but it read other outputs of a
     assert ex.execute(ex.plan(cfg, ["b"]), store) == ["b"]
-    assert store.entry("b")["inputs"]["a"] == {"key": ex.key("a", cfg), "token": store.token("a")}
-    assert fake.execute(root, DEFAULT_TOML, 1) == []
+    assert store.entry("b")["inputs"]["a"] == {"key": ex.key("a", cfg),
+                                               "digest": store.digest("a")}
 
 
 def test_force_reruns_a_stage_and_its_downstream(fake, tmp_path):

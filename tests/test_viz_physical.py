@@ -18,7 +18,8 @@ from test_viz import blueprint_columns, columns, views
 from pipeline.core.math import rotations
 from pipeline.core.sensors import camera, conics
 from pipeline.core.sensors.detection import DetectionModel
-from pipeline.viz.rerun import base, detection, ellipses, layout, sun
+from pipeline.viz.rerun import base, detection, ellipses, layout
+from pipeline.viz.rerun import sun as rerun_sun
 from pipeline.vocab import COUNT_COLORS
 
 R_MOON = 1_737_400.0
@@ -172,9 +173,9 @@ OLD_ENTITIES = {CAM, f"{CAM}/visible", f"{CAM}/used", "/world/frustum", "/world/
                 "/world/moon/visible", "/world/moon/used", "/world/moon/false_matches",
                 "/counts/candidates", "/counts/visible", "/counts/identified", "/counts/used",
                 "/detection/d_min_km"}
-NEW_ENTITIES = {sun.SUN_ENTITY, sun.SUNLIGHT_ENTITY,
-                f"{sun.SUNLIGHT_ENTITY}/day_side", f"{sun.SUNLIGHT_ENTITY}/terminator",
-                sun.SUN_ELEVATION_ENTITY, sun.GSD_ENTITY,
+NEW_ENTITIES = {rerun_sun.SUN_ENTITY, rerun_sun.SUNLIGHT_ENTITY,
+                f"{rerun_sun.SUNLIGHT_ENTITY}/day_side", f"{rerun_sun.SUNLIGHT_ENTITY}/terminator",
+                rerun_sun.SUN_ELEVATION_ENTITY, rerun_sun.GSD_ENTITY,
                 f"{ellipses.ELLIPSES_ENTITY}/measured", f"{ellipses.ELLIPSES_ENTITY}/true"}
 
 
@@ -182,21 +183,21 @@ NEW_ENTITIES = {sun.SUN_ENTITY, sun.SUNLIGHT_ENTITY,
 
 
 def test_sun_arrow_points_from_the_moon_centre_to_the_sun_per_frame(physical_rrd):
-    cols = columns(physical_rrd, sun.SUN_ENTITY)
+    cols = columns(physical_rrd, rerun_sun.SUN_ENTITY)
     assert cols["frame"] == list(range(F))
-    vectors = np.array([v[0] for v in cols[f"{sun.SUN_ENTITY}:Arrows3D:vectors"]])
-    np.testing.assert_allclose(vectors / sun.SUN_ARROW_LENGTH_M, sun_directions(),
+    vectors = np.array([v[0] for v in cols[f"{rerun_sun.SUN_ENTITY}:Arrows3D:vectors"]])
+    np.testing.assert_allclose(vectors / rerun_sun.SUN_ARROW_LENGTH_M, sun_directions(),
                                atol=1e-6)
     # on the line from the Moon's centre, from where it leaves the surface (the subsolar point)
-    origins = np.array([v[0] for v in cols[f"{sun.SUN_ENTITY}:Arrows3D:origins"]])
-    np.testing.assert_allclose(origins / (R_MOON + sun.SUNLIGHT_LIFT_M), sun_directions(),
+    origins = np.array([v[0] for v in cols[f"{rerun_sun.SUN_ENTITY}:Arrows3D:origins"]])
+    np.testing.assert_allclose(origins / (R_MOON + rerun_sun.SUNLIGHT_LIFT_M), sun_directions(),
                                atol=1e-6)
-    static = columns(physical_rrd, sun.SUN_ENTITY, index=None)
-    assert static[f"{sun.SUN_ENTITY}:Arrows3D:labels"] == [["Sun"]]
+    static = columns(physical_rrd, rerun_sun.SUN_ENTITY, index=None)
+    assert static[f"{rerun_sun.SUN_ENTITY}:Arrows3D:labels"] == [["Sun"]]
 
 
 def test_lit_side_turns_with_the_sun(physical_rrd):
-    base = sun.SUNLIGHT_ENTITY
+    base = rerun_sun.SUNLIGHT_ENTITY
     cols = columns(physical_rrd, base)
     q = np.array([v[0] for v in cols[f"{base}:Transform3D:quaternion"]])
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, rtol=1e-6)
@@ -204,9 +205,9 @@ def test_lit_side_turns_with_the_sun(physical_rrd):
     np.testing.assert_allclose(rotations.dcm_from_q(q)[:, :, 2], sun_directions(), atol=1e-6)
     static = columns(physical_rrd, f"{base}/**", index=None)
     day = np.array(static[f"{base}/day_side:Points3D:positions"][0])
-    assert len(day) == sun.DAY_SIDE_POINTS
+    assert len(day) == rerun_sun.DAY_SIDE_POINTS
     r = np.linalg.norm(day, axis=1)
-    np.testing.assert_allclose(r, R_MOON + sun.SUNLIGHT_LIFT_M, rtol=1e-6)
+    np.testing.assert_allclose(r, R_MOON + rerun_sun.SUNLIGHT_LIFT_M, rtol=1e-6)
     assert (day[:, 2] > 0).all()  # the lit hemisphere only
     colors = np.array(static[f"{base}/day_side:Points3D:colors"][0], dtype=np.int64)
     red = colors >> 24
@@ -214,20 +215,20 @@ def test_lit_side_turns_with_the_sun(physical_rrd):
     ring = np.array(static[f"{base}/terminator:LineStrips3D:strips"][0][0])
     np.testing.assert_allclose(ring[:, 2], 0.0, atol=1e-6)
     np.testing.assert_allclose(np.hypot(ring[:, 0], ring[:, 1]),
-                               R_MOON + sun.SUNLIGHT_LIFT_M, rtol=1e-6)
+                               R_MOON + rerun_sun.SUNLIGHT_LIFT_M, rtol=1e-6)
 
 
 def test_sun_elevation_and_ground_sample_distance_series(physical_rrd):
     cols = columns(physical_rrd, "/trajectory/**")
     assert cols["frame"] == list(range(F))
-    for entity, expected in ((sun.SUN_ELEVATION_ENTITY, SUN_ELEVATION_DEG),
-                             (sun.GSD_ENTITY, GSD_M)):
+    for entity, expected in ((rerun_sun.SUN_ELEVATION_ENTITY, SUN_ELEVATION_DEG),
+                             (rerun_sun.GSD_ENTITY, GSD_M)):
         got = np.array([v[0] for v in cols[f"{entity}:Scalars:scalars"]])
         np.testing.assert_allclose(got, expected)
     names = columns(physical_rrd, "/trajectory/**", index=None)
-    assert names[f"{sun.SUN_ELEVATION_ENTITY}:SeriesLines:names"] == [
+    assert names[f"{rerun_sun.SUN_ELEVATION_ENTITY}:SeriesLines:names"] == [
         ["Sun elevation at the sub-spacecraft point (deg)"]]
-    assert names[f"{sun.GSD_ENTITY}:SeriesLines:names"] == [
+    assert names[f"{rerun_sun.GSD_ENTITY}:SeriesLines:names"] == [
         ["ground sample distance at nadir (m/px)"]]
 
 
@@ -324,7 +325,7 @@ def test_fewer_segments_for_small_ellipses():
 def test_paper_detections_keep_the_old_entities_only(paper_rrd, physical_rrd):
     assert entities(paper_rrd) == OLD_ENTITIES
     assert entities(physical_rrd) == OLD_ENTITIES | NEW_ENTITIES
-    assert not sun.has_sun(frames_table(detections_table(False), sun=False))
+    assert not rerun_sun.has_sun(frames_table(detections_table(False), sun=False))
     assert not ellipses.has_rim_ellipses(detections_table(False))
 
 
@@ -347,6 +348,6 @@ def test_layout_has_the_sun_and_gsd_plots_without_new_origins(tmp_path):
     by_name = {v["name"][0]: v for v in views(blueprint_columns(path)).values() if "name" in v}
     sun = by_name["Sun elevation at the sub-spacecraft point (deg)"]
     gsd = by_name["ground sample distance (m/px)"]
-    assert sun["contents"] == [sun.SUN_ELEVATION_ENTITY]
-    assert gsd["contents"] == [sun.GSD_ENTITY]
+    assert sun["contents"] == [rerun_sun.SUN_ELEVATION_ENTITY]
+    assert gsd["contents"] == [rerun_sun.GSD_ENTITY]
     assert sun["origin"] == gsd["origin"] == ["/trajectory"]

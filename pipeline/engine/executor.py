@@ -72,6 +72,13 @@ class Executor:
         wanted = set(self.dag.order if stages is None else stages)
         for name in wanted:
             self.dag[name]  # unknown names fail here, with the known ones listed
+            if stages is not None and not self.dag.is_active(name, cfg):
+                writers = sorted({w for o in self.dag[name].outputs
+                                  for w in self.dag.producers[o] if self.dag.is_active(w, cfg)})
+                raise StageInputError(f"stage {name!r} does not run for scenario {cfg.name!r}"
+                                      + (f": {', '.join(writers)} writes its outputs" if writers
+                                         else ""))
+        wanted = {n for n in wanted if self.dag.is_active(n, cfg)}
         forced = {d for f in force for d in self.dag.downstream_of(f, cfg)}
         return [Invocation(n, cfg, n in forced) for n in self.dag.order if n in wanted]
 
@@ -110,7 +117,7 @@ class Executor:
                     f"`just run {cfg.name}{rid}`")
             inputs[u] = {"key": self.key(u, cfg), "digest": store.digest(u)}
         for name in s.inputs_for(cfg):
-            paths[name] = store.stage_dir(self.dag.producer[name]) / name
+            paths[name] = store.stage_dir(self.dag.producer_for(name, cfg)) / name
         tx = store.begin(s.name, key, inputs, s.config_hash(cfg), code_hash(s.code, VISUAL_LAYER),
                          force=inv.force, visuals=s.visuals)
         t0 = time.perf_counter()
@@ -149,7 +156,7 @@ class Executor:
 
     def _redraw(self, s: Stage, cfg: RunConfig, store: RunStore) -> None:
         """Only the visuals are stale: draw them again from the committed outputs."""
-        paths = {name: store.stage_dir(self.dag.producer[name]) / name
+        paths = {name: store.stage_dir(self.dag.producer_for(name, cfg)) / name
                  for name in s.inputs_for(cfg)}
         tx = store.begin_redraw(s.name, s.visuals)
         t0 = time.perf_counter()

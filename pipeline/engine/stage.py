@@ -71,6 +71,8 @@ class Stage:
       keyed, checked, ordered before it).
     - `code`: the modules whose sources (with their `pipeline` imports, less `pipeline.viz`) key
       the computation; `visual_code`: those that key the visuals.
+    - `active(cfg)`: whether it runs with this config (None: always); stages that write the
+      same artifacts are alternatives, one active per config (`pipeline.engine.dag`).
     - `external`: a fingerprint of what lives outside the run folder (a catalogue file),
       `fresh_outside` its check at skip time, `verify` a last check just before the commit (e.g.
       the catalogue was not replaced meanwhile).
@@ -88,6 +90,7 @@ class Stage:
     visual_code: tuple[str, ...] = ()
     visual_reads: tuple[str, ...] = ()
     reads_when: Callable[[RunConfig], tuple[str, ...]] | None = None
+    active: Callable[[RunConfig], bool] | None = None
     external: Callable[[RunConfig], Any] | None = None
     fresh_outside: Callable[[RunConfig, str], bool] | None = None
     verify: Callable[[StageContext], None] | None = None

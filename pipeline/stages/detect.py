@@ -25,7 +25,7 @@ from pipeline.ops.detect import detect_all, model_of
 from pipeline.ops.identify import identify_all
 from pipeline.stages.estimate import options as estimate_options
 from pipeline.stages.navigate import options as navigate_options
-from pipeline.viz.draw import record_detect
+from pipeline.viz.draw.detect import record_detect
 from pipeline.workspace import workspace
 
 IMU_INPUTS = ("imu.parquet", "imu_truth.parquet", "altimeter.parquet")
@@ -138,6 +138,6 @@ STAGE = Stage(
     run=run,
     visuals=("detection.rrd",),
     record=record_detect,
-    visual_code=("pipeline.viz.draw",),
+    visual_code=("pipeline.viz.draw.detect",),
     verify=lambda ctx: check_catalogue_unchanged(ctx.input("catalogue.json")),
 )

@@ -13,7 +13,7 @@ from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.estimate import EstimateOptions, UsedCraters, estimate_all
-from pipeline.viz.draw import record_estimate
+from pipeline.viz.draw.estimate import record_estimate
 
 
 def options(cfg: RunConfig) -> EstimateOptions:
@@ -63,12 +63,12 @@ STAGE = Stage(
            "detection.fov_deg", "detection.fov_convention", "detection.image_size_px",
            "detection.range_source", "detection.catalogue_sigma_horizontal_m",
            "detection.catalogue_sigma_height_m", "detection.catalogue_sigma_diameter_share",
-           "detection.camera_mounting_deg", "seed"),
+           "detection.camera_mounting_deg", "detection.distortion", "seed"),
     inputs=("detections.parquet", "frames.parquet", "trajectory.parquet"),
     outputs=("estimates.parquet",),
     code=("pipeline.stages.estimate",),
     run=run,
     visuals=("estimation.rrd",),
     record=record_estimate,
-    visual_code=("pipeline.viz.draw",),
+    visual_code=("pipeline.viz.draw.estimate",),
 )

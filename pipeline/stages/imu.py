@@ -15,7 +15,7 @@ import polars as pl
 
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.imu import simulate
-from pipeline.viz.draw import record_imu
+from pipeline.viz.draw.imu import record_imu
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -49,5 +49,5 @@ STAGE = Stage(
     run=run,
     visuals=("imu.rrd",),
     record=record_imu,
-    visual_code=("pipeline.viz.draw",),
+    visual_code=("pipeline.viz.draw.imu",),
 )

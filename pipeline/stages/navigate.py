@@ -18,7 +18,7 @@ from pipeline.core.navigation.filter import FilterOptions
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.estimate import UsedCraters
 from pipeline.ops.navigate import NavigateOptions, navigate, process_noise
-from pipeline.viz.draw import record_navigate
+from pipeline.viz.draw.navigate import record_navigate
 
 
 def options(cfg: RunConfig) -> NavigateOptions:
@@ -94,5 +94,5 @@ STAGE = Stage(
     run=run,
     visuals=("navigation.rrd",),
     record=record_navigate,
-    visual_code=("pipeline.viz.draw",),
+    visual_code=("pipeline.viz.draw.navigate",),
 )

@@ -31,7 +31,7 @@ from pipeline.io.catalogue import check_catalogue_unchanged, load_recorded_catal
 from pipeline.io.images import encode_png
 from pipeline.ops import render as ops_render
 from pipeline.ops.detect import model_of, true_poses
-from pipeline.viz.draw import record_render
+from pipeline.viz.draw.render import record_render
 
 
 def options(cfg: RunConfig) -> ops_render.RenderOptions:
@@ -133,6 +133,6 @@ STAGE = Stage(
     run=run,
     visuals=("contact_sheet.png", "render.rrd"),
     record=record_render,
-    visual_code=("pipeline.viz.draw",),
+    visual_code=("pipeline.viz.draw.render",),
     verify=lambda ctx: check_catalogue_unchanged(ctx.input("catalogue.json")),
 )

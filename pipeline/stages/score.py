@@ -29,7 +29,7 @@ from pipeline.ops.score import (
     summarize_navigation,
     windows,
 )
-from pipeline.viz.draw import record_score
+from pipeline.viz.draw.score import record_score
 
 RENDER_INPUTS = ("render.json", "detection_recall.parquet", "images.parquet")  # the report's
 
@@ -166,7 +166,7 @@ STAGE = Stage(
     visual_reads=("catalogue.source", "trajectory.frame_rate_hz", "estimation.robust",
                   "estimation.methods", "imu.grade", "imu.rate_hz", "navigation"),
     record=record_score,
-    visual_code=("pipeline.viz.draw",),
+    visual_code=("pipeline.viz.draw.score",),
     optional_inputs=RENDER_INPUTS,
     uses_optional=lambda cfg: RENDER_INPUTS if cfg.render.enabled else (),
     run=run,

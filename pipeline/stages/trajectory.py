@@ -10,7 +10,7 @@ import json
 
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.trajectory import simulate
-from pipeline.viz.draw import record_trajectory
+from pipeline.viz.draw.trajectory import record_trajectory
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -39,5 +39,5 @@ STAGE = Stage(
     run=run,
     visuals=("trajectory.rrd",),
     record=record_trajectory,
-    visual_code=("pipeline.viz.draw",),
+    visual_code=("pipeline.viz.draw.trajectory",),
 )

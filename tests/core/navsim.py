@@ -10,6 +10,7 @@ import numpy as np
 from conftest import DEFAULT_TOML
 
 from pipeline.config import load_config
+from pipeline.core.body.surface import Sphere
 from pipeline.core.dynamics.orbit import Descent
 from pipeline.core.estimation import measurement
 from pipeline.core.math.constants import MOON_RADIUS_M
@@ -111,7 +112,7 @@ def options(grade: imu.ImuGrade, gate: float | None = 0.9999, smooth: bool = Fal
     noise = ProcessNoise(grade.gyro.random_walk, grade.accel.random_walk,
                          grade.gyro.bias_random_walk, grade.accel.bias_random_walk)
     return filter.FilterOptions(noise, SIGMA_BEARING, SIGMA_RANGE_M, gate, "point_mass",
-                                MOON_RADIUS_M, 1.0, smooth)
+                                Sphere(MOON_RADIUS_M), 1.0, smooth)
 
 
 def initial(rng: np.random.Generator, x_true: NavState, grade: imu.ImuGrade,
