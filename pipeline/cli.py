@@ -313,16 +313,22 @@ def view(
 def stages() -> None:
     """The stages as declared: what each reads (config, artifacts), writes and is keyed on."""
     from pipeline.engine.fingerprint import closure
+    from pipeline.engine.stage import VISUAL_LAYER
     from pipeline.stages import DAG
 
     for name in DAG.order:
         s = DAG[name]
-        upstream = ", ".join(DAG.upstream[name]) or "-"
+        producers = [p for i in s.inputs for p in DAG.producers[i]]
+        upstream = ", ".join(dict.fromkeys(producers)) or "-"
+        maybe = dict.fromkeys(p for i in s.optional_inputs for p in DAG.producers[i])
         optional = (f"  optional inputs (some configs): {', '.join(s.optional_inputs)} (from "
-                    f"{', '.join(DAG.optional_upstream[name])})\n" if s.optional_inputs else "")
+                    f"{', '.join(maybe)})\n" if s.optional_inputs else "")
+        visuals = (f"  visuals: {', '.join(s.visuals)} (drawn by {', '.join(s.visual_code)})\n"
+                   if s.visuals else "")
         typer.echo(f"{name}: {s.doc}\n  config:  {', '.join(s.reads)}\n"
                    f"  inputs:  {', '.join(s.inputs) or '-'} (from {upstream})\n{optional}"
-                   f"  outputs: {', '.join(s.outputs)}\n  code:    {', '.join(closure(s.code))}")
+                   f"  outputs: {', '.join(s.outputs)}\n{visuals}"
+                   f"  code:    {', '.join(closure(s.code, VISUAL_LAYER))}")
 
 
 @app.command()

@@ -105,8 +105,11 @@ def test_stages_lists_each_declaration_in_order():
     assert heads == list(DAG.order)
     block = result.output.split("detect: ")[1].split("\nestimate: ")[0]
     assert "inputs:  catalogue.json, trajectory.parquet (from ingest, trajectory)" in block
-    assert "outputs: detections.parquet, frames.parquet, detection.rrd" in block
-    assert "pipeline.ops.detect" in block and "pipeline.io.store" not in block
+    assert "outputs: detections.parquet, frames.parquet\n" in block
+    assert "visuals: detection.rrd (drawn by pipeline.viz.draw.detect)" in block
+    code = block.split("code:")[1]
+    assert "pipeline.ops.detect" in code and "pipeline.io.store" not in code
+    assert "pipeline.viz" not in code  # the computation is keyed without the visual layer
 
 
 def test_run_prints_the_folder_the_headline_and_how_to_look(tiny):

@@ -61,7 +61,7 @@ def stage_file(run_dir: Path, name: str) -> Path:
     """A committed output of the run by file name (runs/<run>/<stage>/<name>), from the entries."""
     manifest = json.loads((run_dir / "manifest.json").read_text())
     [path] = [run_dir / stage / name for stage, entry in manifest["stages"].items()
-              if name in entry["outputs"]]
+              if name in entry["outputs"] or name in entry["visuals"]]
     return path
 
 
@@ -77,7 +77,7 @@ def test_every_stage_ran_and_the_run_says_where_it_wrote(run_dir):
     for name, entry in manifest["stages"].items():
         assert (run_dir / name).is_symlink() and entry["stage"] == name
         assert json.loads((run_dir / name / "stage.json").read_text()) == entry
-        for output in entry["outputs"]:
+        for output in (*entry["outputs"], *entry["visuals"]):
             assert (run_dir / name / output).is_file(), (name, output)
     config = json.loads((run_dir / "config.json").read_text())
     assert config["run_id"] == "short"

@@ -528,11 +528,12 @@ def test_stage_is_skipped_when_fresh_and_rerun_with_force(workdir):
     store = RunStore(cfg.run_id)
     assert run_stages(cfg, store.root, PIPELINE) == list(PIPELINE)
     before, token = store.entry("detect"), store.token("detect")
-    assert {"detections.parquet", "frames.parquet", "detection.rrd"} <= set(before["outputs"])
+    assert {"detections.parquet", "frames.parquet"} <= set(before["outputs"])
+    assert set(before["visuals"]) == {"detection.rrd"}
     assert set(before["tables"]) == {"detections", "frames"}
     # the entry names the upstream commits it read
-    assert set(before["inputs"]) == {"ingest", "trajectory"}
-    assert before["inputs"]["trajectory"]["token"] == store.token("trajectory")
+    # the entry names the upstream outputs it read (their digests)
+    assert before["inputs"]["trajectory"]["digest"] == store.digest("trajectory")
 
     assert run_stages(cfg, store.root, PIPELINE) == []
     assert store.entry("detect") == before and store.token("detect") == token

@@ -152,7 +152,8 @@ def test_estimates_table_rows_columns_and_database(runs):
     entry = store.entry("estimate")
     assert entry["info"]["status_counts"] == {"joint/ok": N_FRAMES, "paper/ok": N_FRAMES}
     assert entry["info"]["robust"] is False
-    assert set(entry["outputs"]) == {"estimates.parquet", "estimation.rrd"}
+    assert set(entry["outputs"]) == {"estimates.parquet"}
+    assert set(entry["visuals"]) == {"estimation.rrd"}
 
 
 # --- honesty: errors against the truth ------------------------------------------------------------
@@ -216,24 +217,24 @@ def replace_outputs(store: RunStore, tables: dict[str, pl.DataFrame]) -> None:
     """Replace stage tables (Parquet, hence run.duckdb's views) keeping the stages fresh: an
     output overwritten in place makes its stage stale, so each stage owning a replaced table is
     recommitted through the store with its key and entry, and the stages downstream of it with
-    the new upstream tokens."""
+    the new upstream digests."""
     recommitted: set[str] = set()
     for stage in DAG.order:
         entry = store.entry(stage)
         if entry is None or not (set(entry["tables"]) & set(tables)
                                  or set(entry["inputs"]) & recommitted):
             continue
-        inputs = {u: {**i, "token": store.token(u)} for u, i in entry["inputs"].items()}
+        inputs = {u: {**i, "digest": store.digest(u)} for u, i in entry["inputs"].items()}
         with store.lock():
             tx = store.begin(stage, entry["key"], inputs, entry["config_hash"],
-                             entry["code_hash"])
-            for name in entry["outputs"]:
+                             entry["code_hash"], visuals=tuple(entry["visuals"]))
+            for name in (*entry["outputs"], *entry["visuals"]):
                 table = name.removesuffix(".parquet")
                 if table in entry["tables"]:
                     tx.table(table, tables.get(table, pl.read_parquet(store.path(name))))
                 else:
                     shutil.copyfile(store.path(name), tx.output(name))
-            tx.commit(entry["info"])
+            tx.commit(entry["info"], visuals_key=entry["visuals_key"])
         recommitted.add(stage)
     for name, table in tables.items():
         assert read(store, name).equals(table), name
