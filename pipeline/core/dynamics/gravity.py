@@ -9,6 +9,8 @@ MCI z, the Moon's spin axis). SI units: m, s.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from pipeline.core.math.constants import MOON_GM_M3_S2, MOON_RADIUS_M
@@ -42,3 +44,20 @@ def gravity_gradient(r_mci_m: np.ndarray, gm_m3_s2: float = MOON_GM_M3_S2) -> np
     rn = float(np.linalg.norm(r))
     u = r / rn
     return gm_m3_s2 / rn**3 * (3.0 * np.outer(u, u) - np.eye(3))
+
+
+def gravity_xyz(x: float, y: float, z: float, model: str = "point_mass",
+                gm_m3_s2: float = MOON_GM_M3_S2) -> tuple[float, float, float]:
+    """`gravity_mci` of one position given as Python floats (m), returned as floats (m/s^2):
+    the same formulas for the world's step, where numpy's per-call cost on a (3,) array would
+    dominate (~10x; `tests/core/test_powered.py` checks the two agree to 1e-15)."""
+    r2 = x * x + y * y + z * z
+    k0 = -gm_m3_s2 / (r2 * math.sqrt(r2))
+    if model == "point_mass":
+        return k0 * x, k0 * y, k0 * z
+    if model == "j2":
+        z2_r2 = z * z / r2
+        k = -1.5 * MOON_J2 * gm_m3_s2 * MOON_RADIUS_M**2 / (r2 * r2 * math.sqrt(r2))
+        kxy = k * (1.0 - 5.0 * z2_r2)
+        return (k0 + kxy) * x, (k0 + kxy) * y, (k0 + k * (3.0 - 5.0 * z2_r2)) * z
+    raise ValueError(f"unknown gravity model {model!r}, known {GRAVITY_MODELS}")
