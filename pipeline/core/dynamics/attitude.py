@@ -22,7 +22,7 @@ import numpy as np
 from pipeline.core.math.frames import dcm_mci_from_orbit
 from pipeline.core.math.rotations import q_multiply
 
-DEFAULT_BLEND_RAD = math.radians(5.0)  # tilt below which the reference roll dominates
+DEFAULT_BLEND_RAD = math.radians(10.0)  # tilt below which the reference roll takes part
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -62,17 +62,19 @@ def q_from_axes(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
 def thrust_attitude(u_thrust_mci: np.ndarray, u_up_mci: np.ndarray, x_ref_mci: np.ndarray, *,
                     blend_rad: float = DEFAULT_BLEND_RAD) -> np.ndarray:
     """q_mci_from_body (4,) with body -z along the thrust direction u_thrust_mci (3,) and body +x
-    toward the ground: x = unit(P d + sin(blend) P x_ref), where P projects onto the plane normal
-    to the body z axis, d = -u_up_mci the local down and x_ref_mci (3,) a reference x axis (the
-    current body x for "keep the roll", or a heading). |P d| = sin(tilt of the thrust from the
-    vertical), so above a tilt of ~blend_rad x follows the ground, below it the reference roll.
+    toward the ground: x = unit(P d + max(0, sin(blend) - |P d|) unit(P x_ref)), where P
+    projects onto the plane normal to the body z axis, d = -u_up_mci the local down and x_ref_mci
+    (3,) a reference x axis (the current body x for "keep the roll", or a heading). |P d| =
+    sin(tilt of the thrust from the vertical): at tilts above blend_rad x is exactly the ground's
+    direction, below it the reference roll takes over continuously (all of it at the vertical).
     Falls back to any axis normal to z when both projections vanish."""
     z = -_unit(np.asarray(u_thrust_mci, dtype=float))
     down = -np.asarray(u_up_mci, dtype=float)
     ref = np.asarray(x_ref_mci, dtype=float)
     p_down = down - (down @ z) * z
     p_ref = ref - (ref @ z) * z
-    x = p_down + math.sin(blend_rad) * _unit(p_ref) if p_ref @ p_ref > 1e-24 else p_down
+    weight = math.sin(blend_rad) - math.sqrt(float(p_down @ p_down))
+    x = p_down + weight * _unit(p_ref) if weight > 0.0 and p_ref @ p_ref > 1e-24 else p_down
     if x @ x < 1e-20:  # thrust vertical and the reference along it: any axis normal to z
         x = _cross(z, np.array([1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0]))
     x = _unit(x)

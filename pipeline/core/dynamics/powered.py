@@ -12,7 +12,8 @@ throttle range; 0 or less is engine off) and a commanded attitude. Over one step
   integrated by classical RK4 with the attitude and mass known analytically inside the step (the
   accuracy is in `tests/core/test_powered.py`: against DOP853 at rtol 1e-12);
 - the accelerometers' true increment is the integral of the specific force in body axes,
-  exactly delta-v = Isp g0 ln(m0 / m1) u (the thrust direction is fixed in the body).
+  exactly delta-v = Isp g0 ln(m0 / m1) u (the thrust direction is fixed in the body), computed
+  as log1p(burnt / m1) to keep its ~1e-16 relative accuracy.
 
 Surface contact (`find_contact`): the altitude crossing zero inside a step, found on the step's
 cubic Hermite interpolant of (r, v), and the touchdown state there. SI units (m, s, kg, N, rad).
@@ -202,48 +203,45 @@ def attitude_rate(vehicle: Vehicle, q_mci_from_body: np.ndarray,
                           np.asarray(q_mci_from_body_cmd, float).tolist(), dt_s))
 
 
-class _Thrust:
-    """The thrust acceleration (m/s^2, MCI) at time s (s) into a step: T / (m0 - mdot s) times
-    the thrust axis u (body) carried by the attitude q0 Exp(omega s) (Rodrigues)."""
-
-    def __init__(self, q0: list[float], omega: Vec, u: Vec, thrust_n: float, m0: float,
-                 mdot: float) -> None:
-        x, y, z, w = q0
-        self.dcm = (w * w + x * x - y * y - z * z, 2 * (x * y - z * w), 2 * (x * z + y * w),
-                    2 * (x * y + z * w), w * w - x * x + y * y - z * z, 2 * (y * z - x * w),
-                    2 * (x * z - y * w), 2 * (y * z + x * w), w * w - x * x - y * y + z * z)
-        self.rate = math.sqrt(omega[0] ** 2 + omega[1] ** 2 + omega[2] ** 2)
-        ux, uy, uz = u
-        if self.rate > 0.0:
-            kx, ky, kz = (c / self.rate for c in omega)
-        else:
-            kx = ky = kz = 0.0
-        ku = kx * ux + ky * uy + kz * uz
-        # u(s) = u cos + (k x u) sin + k (k . u) (1 - cos) = p + c cos + d sin
-        self.p = (kx * ku, ky * ku, kz * ku)
-        self.c = (ux - kx * ku, uy - ky * ku, uz - kz * ku)
-        self.d = (ky * uz - kz * uy, kz * ux - kx * uz, kx * uy - ky * ux)
-        self.thrust_n, self.m0, self.mdot = thrust_n, m0, mdot
-
-    def __call__(self, s: float) -> Vec:
-        if self.thrust_n == 0.0:
-            return 0.0, 0.0, 0.0
-        c, sn = math.cos(self.rate * s), math.sin(self.rate * s)
-        p, cc, d = self.p, self.c, self.d
-        bx, by, bz = p[0] + c * cc[0] + sn * d[0], p[1] + c * cc[1] + sn * d[1], \
-            p[2] + c * cc[2] + sn * d[2]
-        f = self.thrust_n / (self.m0 - self.mdot * s)
-        m = self.dcm
-        return (f * (m[0] * bx + m[1] * by + m[2] * bz), f * (m[3] * bx + m[4] * by + m[5] * bz),
-                f * (m[6] * bx + m[7] * by + m[8] * bz))
+_ZERO = (0.0, 0.0, 0.0)
 
 
-def _rk4(r: Vec, v: Vec, s0: float, h: float, thrust: _Thrust, gravity: str, gm: float
+def _thrust_mci(q0: list[float], omega: Vec, u: Vec, thrust_n: float, m0: float, mdot: float,
+                s0: float, h: float) -> tuple[Vec, Vec, Vec]:
+    """The thrust acceleration (m/s^2, MCI) at s0, s0 + h / 2 and s0 + h (s into the step):
+    T / (m0 - mdot s) times the body thrust axis u carried by the attitude q0 Exp(omega s)
+    (Rodrigues: u(s) = k (k . u) + (u - k (k . u)) cos(|omega| s) + (k x u) sin(|omega| s))."""
+    if thrust_n == 0.0:
+        return _ZERO, _ZERO, _ZERO
+    x, y, z, w = q0
+    m00, m01, m02 = w * w + x * x - y * y - z * z, 2 * (x * y - z * w), 2 * (x * z + y * w)
+    m10, m11, m12 = 2 * (x * y + z * w), w * w - x * x + y * y - z * z, 2 * (y * z - x * w)
+    m20, m21, m22 = 2 * (x * z - y * w), 2 * (y * z + x * w), w * w - x * x - y * y + z * z
+    rate = math.sqrt(omega[0] * omega[0] + omega[1] * omega[1] + omega[2] * omega[2])
+    ux, uy, uz = u
+    if rate > 0.0:
+        kx, ky, kz = omega[0] / rate, omega[1] / rate, omega[2] / rate
+    else:
+        kx = ky = kz = 0.0
+    ku = kx * ux + ky * uy + kz * uz
+    px, py, pz = kx * ku, ky * ku, kz * ku
+    cx, cy, cz = ux - px, uy - py, uz - pz
+    dx, dy, dz = ky * uz - kz * uy, kz * ux - kx * uz, kx * uy - ky * ux
+    out = []
+    for s in (s0, s0 + 0.5 * h, s0 + h):
+        c, sn = math.cos(rate * s), math.sin(rate * s)
+        bx, by, bz = px + c * cx + sn * dx, py + c * cy + sn * dy, pz + c * cz + sn * dz
+        f = thrust_n / (m0 - mdot * s)
+        out.append((f * (m00 * bx + m01 * by + m02 * bz), f * (m10 * bx + m11 * by + m12 * bz),
+                    f * (m20 * bx + m21 * by + m22 * bz)))
+    return out[0], out[1], out[2]
+
+
+def _rk4(r: Vec, v: Vec, h: float, a_thrust: tuple[Vec, Vec, Vec], gravity: str, gm: float
          ) -> tuple[Vec, Vec]:
-    """One classical RK4 step of length h (s) from s0 (s into the step) of r' = v,
-    v' = g(r) + thrust(s), on Python floats."""
-    (a0x, a0y, a0z), (amx, amy, amz), (a1x, a1y, a1z) = (thrust(s0), thrust(s0 + 0.5 * h),
-                                                         thrust(s0 + h))
+    """One classical RK4 step of length h (s) of r' = v, v' = g(r) + a_thrust(s), with the
+    thrust acceleration at the start, middle and end of the step, on Python floats."""
+    (a0x, a0y, a0z), (amx, amy, amz), (a1x, a1y, a1z) = a_thrust
     hh = 0.5 * h
     rx, ry, rz = r
     vx, vy, vz = v
@@ -304,14 +302,15 @@ def step(vehicle: Vehicle, state: LanderState, thrust_cmd_n: float,
     u = vehicle.thrust_axis_tuple
     r, v, m1 = tuple(state.r_mci_m.tolist()), tuple(state.v_mci_m_s.tolist()), m0
     if burn > 0.0:
-        r, v = _rk4(r, v, 0.0, burn, _Thrust(q0, omega, u, thrust, m0, mdot), gravity,
+        r, v = _rk4(r, v, burn, _thrust_mci(q0, omega, u, thrust, m0, mdot, 0.0, burn), gravity,
                     gm_m3_s2)
         m1 = m0 - mdot * burn if burn == dt_s else vehicle.dry_mass_kg
     if burn < dt_s:  # engine off, or burnout inside the step: coast (the rest of) it
-        r, v = _rk4(r, v, burn, dt_s - burn, _Thrust(q0, omega, u, 0.0, m1, 0.0), gravity,
-                    gm_m3_s2)
+        r, v = _rk4(r, v, dt_s - burn, (_ZERO, _ZERO, _ZERO), gravity, gm_m3_s2)
     omega_arr = np.array(omega)
-    dv = vehicle.thrust_axis_body * (vehicle.exhaust_velocity_m_s * math.log(m0 / m1))
+    # the propellant burnt, not m0 - m1 (no cancellation): 0, a step's worth, or what was left
+    burnt = 0.0 if burn == 0.0 else mdot * burn if burn == dt_s else propellant
+    dv = vehicle.thrust_axis_body * (vehicle.exhaust_velocity_m_s * math.log1p(burnt / m1))
     new = LanderState(state.t_s + dt_s, np.array(r), np.array(v),
                       np.array(_q_step(q0, omega, dt_s)), omega_arr, m1)
     return Step(new, omega_arr * dt_s, dv, thrust, burn)
