@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -42,7 +43,7 @@ SITE_MCMF = frames.mcmf_from_latlon(np.radians(SITE_LAT_DEG), np.radians(SITE_LO
                                     MOON_RADIUS_M)
 TARGET = Target(SITE_MCMF)
 # Pass marks of a landing with perfect navigation (measured on the LM in brackets).
-MISS_TOL_M = 1.0  # [0.000 m point mass; 0.12 m with J2 and a 0.7 deg misaligned engine]
+MISS_TOL_M = 1.0  # [0.000 m point mass; 0.12 m with J2, an engine 0.7 deg off, 10 % weak]
 VERTICAL_SPEED_MAX_M_S = 2.0  # [1.000]
 HORIZONTAL_SPEED_MAX_M_S = 1.0  # [< 0.011]
 TILT_MAX_DEG = 3.0  # [0.00; 0.73 misaligned]
@@ -64,7 +65,7 @@ def pdi_start(vehicle: Vehicle, range_m: float = 520e3) -> LanderState:
 
 
 def fly(vehicle: Vehicle, belief: Vehicle | None = None, range_m: float = 520e3,
-        **kwargs: object) -> tuple[Flight, ApolloGuidance]:
+        **kwargs: Any) -> tuple[Flight, ApolloGuidance]:
     law = ApolloGuidance(ApolloOptions(), belief or vehicle)
     return fly_perfect(law, vehicle, pdi_start(vehicle, range_m), TARGET, **kwargs), law
 
@@ -255,14 +256,20 @@ def test_apollo_keeps_the_ground_in_a_camera_between_x_and_z(lm_flight: tuple) -
 
 
 @pytest.mark.slow
-def test_apollo_lands_on_a_j2_moon_with_a_misaligned_engine() -> None:
-    truth = dataclasses.replace(LM, misalignment_rad=(0.01, -0.007))
+def test_apollo_lands_on_a_j2_moon_with_a_misaligned_weaker_engine() -> None:
+    """The world: J2 gravity, the thrust 0.7 deg off body -z and 10 % weaker than the flight
+    software believes (point mass, aligned, nominal): the braking commands saturate for part
+    of the burn (the direction kept), the feedback catches up."""
+    truth = dataclasses.replace(LM, misalignment_rad=(0.01, -0.007),
+                                max_thrust_n=0.9 * LM.max_thrust_n)
     flight, _ = fly(truth, belief=LM, gravity="j2")
     assert_landed(flight, truth)
+    saturated = flight.log.thrust_n > truth.max_thrust_n * truth.throttle_range[1]
+    assert saturated.mean() > 0.1
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("name", "range_m"), [("nova_c", 580e3), ("blue_ghost", 640e3)])
+@pytest.mark.parametrize(("name", "range_m"), [("nova_c", 580e3), ("blue_ghost", 700e3)])
 def test_apollo_lands_the_commercial_landers(name: str, range_m: float) -> None:
     vehicle = powered.VEHICLES[name]
     flight, _ = fly(vehicle, range_m=range_m)
@@ -279,6 +286,7 @@ def test_a_known_navigation_error_moves_the_touchdown_one_to_one(lm_flight: tupl
     east = np.cross([0.0, 0.0, 1.0], up)
     east /= np.linalg.norm(east)
     flight, _ = fly(LM, position_error_mcmf_m=lambda t: 30.0 * east * (t >= t_error))
+    assert flight.touchdown is not None and baseline.touchdown is not None
     assert_landed(dataclasses.replace(flight, touchdown=dataclasses.replace(
         flight.touchdown, miss_m=0.0)), LM)
     shift_e = flight.touchdown.miss_east_m - baseline.touchdown.miss_east_m
@@ -293,6 +301,35 @@ def test_too_little_propellant_runs_out_under_guidance() -> None:
     flight, _ = fly(short)
     assert flight.status == "out_of_fuel"
     assert flight.propellant_used_kg == pytest.approx(5_000.0, abs=1e-6)
+
+
+def test_apollo_coasts_engine_off_until_ignition() -> None:
+    o = descent_orbit(SITE_LAT_DEG, SITE_LON_DEG, HEADING_DEG, range_to_site_m=520e3,
+                      coast_s=300.0)
+    law = ApolloGuidance(ApolloOptions(ignition_t_s=o.t_pdi_s), LM)
+    nav = NavigatedState(0.0, o.r0_mci_m, o.v0_mci_m_s, np.array([0.0, 0.0, 0.0, 1.0]),
+                         LM.wet_mass_kg)
+    cmd = law.command(nav, TARGET)
+    assert cmd.phase == "coast" and cmd.thrust_n == 0.0 and law.plan is None
+    np.testing.assert_allclose(rotations.dcm_from_q(cmd.q_mci_from_body_cmd) @ [0, 0, -1.0],
+                               -o.v0_mci_m_s / np.linalg.norm(o.v0_mci_m_s), atol=1e-12)
+    pdi = dataclasses.replace(nav, t_s=o.t_pdi_s, r_mci_m=o.r_pdi_mci_m,
+                              v_mci_m_s=o.v_pdi_mci_m_s)
+    assert law.command(pdi, TARGET).phase == "braking" and law.plan is not None
+
+
+@pytest.mark.slow
+def test_apollo_lands_after_a_coast_from_the_targeted_orbit() -> None:
+    o = descent_orbit(SITE_LAT_DEG, SITE_LON_DEG, HEADING_DEG, range_to_site_m=520e3,
+                      coast_s=300.0)
+    q = attitude.thrust_attitude(-o.v0_mci_m_s / np.linalg.norm(o.v0_mci_m_s),
+                                 up_at(o.r0_mci_m), -o.r0_mci_m)
+    start = LanderState(0.0, o.r0_mci_m, o.v0_mci_m_s, q, np.zeros(3), LM.wet_mass_kg)
+    law = ApolloGuidance(ApolloOptions(ignition_t_s=o.t_pdi_s), LM)
+    flight = fly_perfect(law, LM, start, TARGET)
+    assert_landed(flight, LM)
+    assert flight.log.phase[0] == "coast" and law.plan is not None
+    assert law.plan.t_pdi_s == pytest.approx(o.t_pdi_s, abs=0.1)
 
 
 def test_apollo_plan_rejects_what_the_vehicle_cannot_fly() -> None:

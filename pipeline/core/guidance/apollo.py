@@ -1,6 +1,8 @@
 """Apollo-style powered-descent guidance: braking, approach and vertical terminal descent.
 
-The three phases of Apollo's lunar descent (Klumpp, "Apollo lunar descent guidance", Automatica
+Before ignition (`ignition_t_s`, the descent orbit's periapsis from `targeting`), a coast with
+the engine off, the thrust axis held against the velocity (the braking attitude). Then the three
+phases of Apollo's lunar descent (Klumpp, "Apollo lunar descent guidance", Automatica
 10(2), 1974; Bennett, NASA TN D-6846, 1972), flown in the landing site's frame (`site_frame`),
 which turns with the Moon, so the site is fixed and the Moon's rotation is exact:
 - braking (Apollo P63), from powered-descent initiation (~15 km altitude, ~1.7 km/s) to the high
@@ -53,9 +55,12 @@ BRAKING_SEARCH_S = (30.0, 3_000.0, 10.0)  # braking durations tried (s): first, 
 
 @dataclass(frozen=True)
 class ApolloOptions:
-    """The law's design (SI). Gates: the high gate's altitude (m) and range before the site
-    (m), the approach's duration (s); the braking plan's peak thrust share; the terminal loops'
-    bandwidth (rad/s), vertical-rate gain (1/s) and tilt limit (deg); the law's gravity model."""
+    """The law's design (SI). Ignition time (s; None: at the first call); gates: the high gate's
+    altitude (m) and range before the site (m), the approach's duration (s); the braking plan's
+    peak thrust share; the terminal loops' bandwidth (rad/s), vertical-rate gain (1/s) and tilt
+    limit (deg); the law's gravity model."""
+
+    ignition_t_s: float | None = None
 
     high_gate_alt_m: float = 2_000.0
     high_gate_range_m: float = 7_000.0
@@ -79,6 +84,9 @@ class ApolloOptions:
         if not 0.0 < self.terminal_max_tilt_deg < 90.0:
             raise ValueError(f"apollo guidance: terminal_max_tilt_deg = "
                              f"{self.terminal_max_tilt_deg}: must be in (0, 90)")
+        if self.ignition_t_s is not None and not math.isfinite(self.ignition_t_s):
+            raise ValueError(f"apollo guidance: ignition_t_s = {self.ignition_t_s}: must be "
+                             "finite (or None: ignite at the first call)")
         if self.gravity not in GRAVITY_MODELS:
             raise ValueError(f"apollo guidance: gravity = {self.gravity!r}: known "
                              f"{GRAVITY_MODELS}")
@@ -199,7 +207,7 @@ class ApolloGuidance:
         self.options = options
         self.vehicle = vehicle
         self.plan: DescentPlan | None = None
-        self.phase = "braking"
+        self.phase = "braking"  # after the coast, if any
 
     def _terminal(self, r: np.ndarray, v: np.ndarray, g_eff: np.ndarray, target: Target
                   ) -> np.ndarray:
@@ -216,6 +224,12 @@ class ApolloGuidance:
         return np.array([a_h[0], a_h[1], a_z])
 
     def command(self, state: NavigatedState, target: Target) -> ThrustCommand:
+        up = state.r_mci_m / math.sqrt(float(state.r_mci_m @ state.r_mci_m))
+        x_ref = dcm_from_q(state.q_mci_from_body)[:, 0]
+        ignition = self.options.ignition_t_s
+        if self.plan is None and ignition is not None and state.t_s < ignition:
+            against = -state.v_mci_m_s / math.sqrt(float(state.v_mci_m_s @ state.v_mci_m_s))
+            return ThrustCommand(np.zeros(3), thrust_attitude(against, up, x_ref), "coast")
         if self.plan is None:
             self.plan = plan_descent(state, target, self.vehicle, self.options)
         plan, t = self.plan, state.t_s
@@ -234,8 +248,7 @@ class ApolloGuidance:
                                          gate.a_site_m_s2, gate.t_s - t)[0]
         a_thrust = plan.frame.vector_to_mci(t, a_cmd - g_eff)
         norm = math.sqrt(float(a_thrust @ a_thrust))
-        up = state.r_mci_m / math.sqrt(float(state.r_mci_m @ state.r_mci_m))
         u = a_thrust / norm if norm > 0.0 else up
         thrust_n = self.vehicle.clamp_thrust_n(max(state.mass_kg * norm, 1e-9))
-        q_cmd = thrust_attitude(u, up, dcm_from_q(state.q_mci_from_body)[:, 0])
+        q_cmd = thrust_attitude(u, up, x_ref)
         return ThrustCommand(thrust_n * u, q_cmd, self.phase)
