@@ -136,6 +136,12 @@ def test_apparent_gravity_is_the_ballistic_acceleration_seen_from_the_site() -> 
     np.testing.assert_allclose(accel, want, atol=2e-6)
     no_rotation = SiteFrame(frame.r_site_mcmf_m, frame.dcm_mcmf_from_site, 0.0)
     assert np.linalg.norm(no_rotation.apparent_gravity(r_s, v_s) - want) > 5e-3
+    # one state (the guidance cycle's float path) = the batch (the plan's numpy path)
+    states = np.array([frame.from_mci(s, *np.split(sol.sol(s), 2)) for s in (0.0, 40.0, 90.0)])
+    for model in ("point_mass", "j2"):
+        batch = frame.apparent_gravity(states[:, 0], states[:, 1], model)
+        one = [frame.apparent_gravity(r, v, model) for r, v in states]
+        np.testing.assert_allclose(one, batch, rtol=0, atol=1e-15)
 
 
 # --- the constant law ------------------------------------------------------------------------

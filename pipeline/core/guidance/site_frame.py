@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.core.dynamics.gravity import gravity_mci
+from pipeline.core.dynamics.gravity import gravity_mci, gravity_xyz
 from pipeline.core.math.constants import MOON_GM_M3_S2, MOON_ROTATION_RATE_RAD_S
 
 
@@ -78,6 +78,12 @@ class SiteFrame:
         r = self.r_site_mcmf_m + np.asarray(r_site_m, dtype=float) @ c.T
         v = np.asarray(v_site_m_s, dtype=float) @ c.T
         w = self.rotation_rate_rad_s
+        if r.ndim == 1:  # one state (each guidance cycle): floats, `gravity_xyz`
+            x, y, z = r.tolist()
+            vx, vy, _ = v.tolist()
+            gx, gy, gz = gravity_xyz(x, y, z, model, gm_m3_s2)
+            return np.array([gx + 2.0 * w * vy + w * w * x, gy - 2.0 * w * vx + w * w * y,
+                             gz]) @ c
         coriolis = -2.0 * w * np.stack([-v[..., 1], v[..., 0], np.zeros(v.shape[:-1])], axis=-1)
         centrifugal = w * w * np.stack([r[..., 0], r[..., 1], np.zeros(r.shape[:-1])], axis=-1)
         return (gravity_mci(r, model, gm_m3_s2) + coriolis + centrifugal) @ c
