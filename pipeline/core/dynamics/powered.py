@@ -35,7 +35,7 @@ from pipeline.core.math.rotations import dcm_from_q, q_exp, q_multiply
 
 G0_M_S2 = 9.80665  # standard gravity, the definition of Isp (CGPM 1901)
 MOON_SURFACE_GRAVITY_M_S2 = MOON_GM_M3_S2 / MOON_RADIUS_M**2  # 1.624 m/s^2
-THRUST_AXIS_NOMINAL_BODY = (0.0, 0.0, -1.0)  # as `guidance.base.THRUST_AXIS_BODY`
+THRUST_AXIS_NOMINAL_BODY = (0.0, 0.0, -1.0)  # the engine's axis in body axes, unmisaligned
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,10 @@ from typing import ClassVar, Protocol
 
 import numpy as np
 
-THRUST_AXIS_BODY = np.array([0.0, 0.0, -1.0])  # the thrust force's direction in body axes
+from pipeline.core.dynamics.powered import THRUST_AXIS_NOMINAL_BODY
+
+# the thrust force's direction in body axes (before the engine's misalignment, `Vehicle`)
+THRUST_AXIS_BODY = np.array(THRUST_AXIS_NOMINAL_BODY)
 
 
 @dataclass(frozen=True)

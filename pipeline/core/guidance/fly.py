@@ -145,9 +145,9 @@ def fly_perfect(law: GuidanceLaw, vehicle: Vehicle, state0: LanderState, target:
             t_out = nxt.t_s
         if nxt.r_mci_m @ nxt.r_mci_m <= high_r2 and float(world.altitude_m(
                 _mcmf(nxt.r_mci_m, rotation_rate_rad_s * nxt.t_s))) <= 0.0:
-            contact = find_contact(state, nxt, world.altitude_m,
-                                   rotation_rate_rad_s=rotation_rate_rad_s)
-            state = contact if contact is not None else nxt
+            found = find_contact(state, nxt, world.altitude_m,
+                                 rotation_rate_rad_s=rotation_rate_rad_s)
+            contact = state = found if found is not None else state  # None: on the ground before
             break
         state = nxt
     down = None if contact is None else touchdown(contact, target, rotation_rate_rad_s)
