@@ -5,7 +5,10 @@ Frames and units: MCI (m, m/s, N), time t_s from the run's t = 0 (the Moon's rot
 `MOON_ROTATION_RATE_RAD_S * t_s`, `pipeline.core.math.frames`), scalar-last quaternions.
 The engine's thrust acts along the body's -z axis (`THRUST_AXIS_BODY`): at a vertical descent
 the body +z axis, and a boresight camera, look at nadir, as the paper's body frame does.
-A new law is a class with `command`, its options class beside it, registered in `GUIDANCE_LAWS`.
+A new law is a class with `command`, its options class beside it, registered in `GUIDANCE_LAWS`;
+it is built as `Law(options, vehicle)` from the flight software's belief of the vehicle
+(`pipeline.core.dynamics.powered.Vehicle`: thrust, throttle range, Isp). A law may keep state
+between calls (its phase); each closed-loop run builds its own instance.
 """
 
 from __future__ import annotations
@@ -15,7 +18,10 @@ from typing import ClassVar, Protocol
 
 import numpy as np
 
-THRUST_AXIS_BODY = np.array([0.0, 0.0, -1.0])  # the thrust force's direction in body axes
+from pipeline.core.dynamics.powered import THRUST_AXIS_NOMINAL_BODY
+
+# the thrust force's direction in body axes (before the engine's misalignment, `Vehicle`)
+THRUST_AXIS_BODY = np.array(THRUST_AXIS_NOMINAL_BODY)
 
 
 @dataclass(frozen=True)
@@ -42,11 +48,18 @@ class Target:
 
 @dataclass(frozen=True)
 class ThrustCommand:
-    """A guidance law's output: the thrust force wanted (N, MCI; its direction is the commanded
-    thrust axis, its norm the thrust, inside the engine's throttle range) and the phase name."""
+    """A guidance law's output: the thrust force wanted (N, MCI; its norm the thrust, inside the
+    engine's throttle range, 0 for engine off), the commanded attitude q_mci_from_body_cmd (its
+    -z axis along the thrust; the law also chooses the roll about it, which decides what a
+    body-fixed camera sees) and the phase name."""
 
     thrust_mci_n: np.ndarray
+    q_mci_from_body_cmd: np.ndarray
     phase: str
+
+    @property
+    def thrust_n(self) -> float:
+        return float(np.linalg.norm(self.thrust_mci_n))
 
 
 class GuidanceLaw(Protocol):

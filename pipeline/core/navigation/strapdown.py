@@ -10,10 +10,8 @@ second order and implicit in r_k; a segment of samples is solved at once, vector
 attitudes by a prefix product of quaternions (Hillis-Steele scan), the positions by a Picard
 iteration that contracts by ~(GM / r^3) T^2 / 2 per pass over a segment of T seconds.
 
-Gravity models: `point_mass` (the truth's, `pipeline.core.dynamics.orbit`) and `j2` (adds the
-Moon's J2
-oblateness, Konopliv et al. 2013 GRAIL GL0660B, J2 = 2.0330e-4 about MCI z) for a navigator
-whose model differs from the world's.
+Gravity models: `pipeline.core.dynamics.gravity` (`point_mass`, the truth's, and `j2`), re-exported
+here; a navigator may use a model that differs from the world's.
 """
 
 from __future__ import annotations
@@ -23,39 +21,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.core.math.constants import MOON_GM_M3_S2, MOON_RADIUS_M
+from pipeline.core.dynamics.gravity import GRAVITY_MODELS, MOON_J2, gravity_gradient, gravity_mci
 from pipeline.core.math.rotations import cross, dcm_from_q, q_exp, q_multiply
 
-MOON_J2 = 2.0330e-4  # GRAIL GL0660B (Konopliv et al., JGR Planets 118, 2013), unnormalised
-GRAVITY_MODELS = ("point_mass", "j2")
+__all__ = ["GRAVITY_MODELS", "MAX_SEGMENT_S", "MOON_J2", "Trajectory", "gravity_gradient",
+           "gravity_mci", "mechanise", "prefix_q_product"]
+
 MAX_SEGMENT_S = 10.0  # longer segments are split: the Picard iteration contracts by ~1e-4 at 10 s
-
-
-def gravity_mci(r_mci_m: np.ndarray, model: str = "point_mass",
-                gm_m3_s2: float = MOON_GM_M3_S2) -> np.ndarray:
-    """Gravitational acceleration (..., 3) (m/s^2, MCI) at positions (..., 3) (m).
-
-    point_mass: -mu r / |r|^3. j2: plus the J2 term about z (Vallado, "Fundamentals of
-    Astrodynamics", 4th ed., Eq. 8-30), reference radius the Moon's mean radius."""
-    r = np.asarray(r_mci_m, dtype=float)
-    r2 = np.einsum("...i,...i->...", r, r)[..., None]
-    g = -gm_m3_s2 * r / (r2 * np.sqrt(r2))
-    if model == "point_mass":
-        return g
-    if model == "j2":
-        z2_r2 = r[..., 2:3] ** 2 / r2
-        k = -1.5 * MOON_J2 * gm_m3_s2 * MOON_RADIUS_M**2 / (r2 * r2 * np.sqrt(r2))
-        scale = np.concatenate([1 - 5 * z2_r2, 1 - 5 * z2_r2, 3 - 5 * z2_r2], axis=-1)
-        return g + k * r * scale
-    raise ValueError(f"unknown gravity model {model!r}, known {GRAVITY_MODELS}")
-
-
-def gravity_gradient(r_mci_m: np.ndarray, gm_m3_s2: float = MOON_GM_M3_S2) -> np.ndarray:
-    """d g / d r (3, 3) (1/s^2) of the point-mass model at r (3,): mu / r^3 (3 r^ r^T - I)."""
-    r = np.asarray(r_mci_m, dtype=float)
-    rn = float(np.linalg.norm(r))
-    u = r / rn
-    return gm_m3_s2 / rn**3 * (3.0 * np.outer(u, u) - np.eye(3))
 
 
 def prefix_q_product(q0: np.ndarray, dq: np.ndarray) -> np.ndarray:
