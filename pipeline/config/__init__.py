@@ -27,6 +27,7 @@ from pipeline.config.checks import (
 )
 from pipeline.config.detection import DetectionConfig
 from pipeline.config.estimation import EstimationConfig
+from pipeline.config.flight import FlightConfig, VelocimeterConfig
 from pipeline.config.inertial import AccelConfig, AltimeterConfig, GyroConfig, ImuConfig
 from pipeline.config.loading import config_hash, load_config, scenario_path, to_dict
 from pipeline.config.navigation import IdentificationConfig, NavigationConfig
@@ -37,9 +38,31 @@ from pipeline.config.trajectory import TrajectoryConfig, impact_time_bounds_s
 from pipeline.errors import ConfigError
 
 __all__ = [
-    "MAX_SEED", "PROPAGATION_LIMIT_S", "AccelConfig", "AltimeterConfig", "CatalogueConfig",
-    "ConfigError", "DetectionConfig", "EstimationConfig", "GyroConfig", "IdentificationConfig",
-    "ImuConfig", "NavigationConfig", "RenderConfig", "RunConfig", "ScoringConfig", "SweepConfig",
-    "TrajectoryConfig", "Window", "config_hash", "impact_time_bounds_s", "load_config",
-    "scenario_path", "to_dict", "validate_run_id", "validate_scenario_name",
+    "MAX_SEED",
+    "PROPAGATION_LIMIT_S",
+    "AccelConfig",
+    "AltimeterConfig",
+    "CatalogueConfig",
+    "ConfigError",
+    "DetectionConfig",
+    "EstimationConfig",
+    "FlightConfig",
+    "GyroConfig",
+    "IdentificationConfig",
+    "ImuConfig",
+    "NavigationConfig",
+    "RenderConfig",
+    "RunConfig",
+    "ScoringConfig",
+    "SweepConfig",
+    "TrajectoryConfig",
+    "VelocimeterConfig",
+    "Window",
+    "config_hash",
+    "impact_time_bounds_s",
+    "load_config",
+    "scenario_path",
+    "to_dict",
+    "validate_run_id",
+    "validate_scenario_name",
 ]

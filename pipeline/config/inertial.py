@@ -5,6 +5,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+import numpy as np
+from scipy.spatial.transform import Rotation
+
 from pipeline.config.checks import _GRADE, PROPAGATION_LIMIT_S, _check, _num
 from pipeline.core.sensors import imu
 
@@ -96,7 +99,7 @@ class ImuConfig:
 
 @dataclass(frozen=True)
 class AltimeterConfig:
-    """The laser altimeter (truth, stage `imu`): slant range along the boresight to the sphere."""
+    """The laser altimeter (truth, stage `imu`): slant range along its beam to the surface."""
 
     enabled: bool
     rate_hz: float
@@ -107,9 +110,14 @@ class AltimeterConfig:
     fault_start_s: float
     fault_end_s: float
     fault_bias_m: float
+    beam_mounting_deg: tuple[float, ...]  # the beam from body +z: 3-2-1 Euler z, y, x (deg)
 
     def __post_init__(self) -> None:
         k = "altimeter."
+        _check(len(self.beam_mounting_deg) == 3, k + "beam_mounting_deg",
+               "needs 3 angles (z, y, x; deg)")
+        for i, a in enumerate(self.beam_mounting_deg):
+            _num(a, f"{k}beam_mounting_deg[{i}]", -180.0, 180.0, unit="deg")
         _num(self.rate_hz, k + "rate_hz", 0.0, 1000.0, lo_open=True, unit="Hz")
         _num(self.sigma_m, k + "sigma_m", 1e-3, 1e5, unit="m")
         _num(self.sigma_share, k + "sigma_share", 0.0, 1.0)
@@ -121,3 +129,10 @@ class AltimeterConfig:
         _check(self.fault_end_s >= self.fault_start_s, k + "fault_end_s",
                f"= {self.fault_end_s:g} s is before fault_start_s ({self.fault_start_s:g} s)")
         _num(self.fault_bias_m, k + "fault_bias_m", -1e6, 1e6, unit="m")
+
+    def beam_body(self) -> np.ndarray:
+        """The beam's unit direction (3,) in body axes: body +z turned by beam_mounting_deg."""
+        if not any(self.beam_mounting_deg):
+            return np.array([0.0, 0.0, 1.0])
+        z, y, x = np.radians(self.beam_mounting_deg)
+        return Rotation.from_euler("ZYX", [z, y, x]).as_matrix() @ np.array([0.0, 0.0, 1.0])

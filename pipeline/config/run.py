@@ -13,13 +13,16 @@ from pipeline.config.catalogue import CatalogueConfig
 from pipeline.config.checks import MAX_SEED, _check, _num, validate_run_id
 from pipeline.config.detection import DetectionConfig
 from pipeline.config.estimation import EstimationConfig
+from pipeline.config.flight import FlightConfig, VelocimeterConfig
 from pipeline.config.inertial import MAX_IMU_SAMPLES, AltimeterConfig, ImuConfig
 from pipeline.config.navigation import IdentificationConfig, NavigationConfig
 from pipeline.config.render import RenderConfig
 from pipeline.config.scoring import ScoringConfig, SweepConfig
 from pipeline.config.trajectory import TrajectoryConfig
+from pipeline.core.guidance.targeting import descent_orbit
 from pipeline.core.sensors import imu
 from pipeline.core.sensors import rim_sensor as sensor
+from pipeline.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -38,6 +41,8 @@ class RunConfig:
     navigation: NavigationConfig
     identification: IdentificationConfig
     render: RenderConfig
+    flight: FlightConfig
+    velocimeter: VelocimeterConfig
     scoring: ScoringConfig
     sweep: SweepConfig
 
@@ -91,9 +96,11 @@ class RunConfig:
         _check(self.identification.mode == "simulated" or self.detection.sensor == "physical",
                "identification.mode", f"= {self.identification.mode!r} matches rim ellipses: it "
                "needs detection.sensor = \"physical\"")
+        if self.flight.closed_loop:
+            self._check_closed_loop()
         # Cross-section: what the scoring needs of the trajectory (known without thrust).
         impact = self.trajectory.ballistic_impact_s()
-        if impact is not None:
+        if impact is not None and not self.flight.closed_loop:
             for w in self.scoring.windows:
                 _check(w.start_s < impact, f"scoring.windows[{w.name}].start_s",
                        f"= {w.start_s:g} s is not before the impact at {impact:.3f} s: the window "
@@ -105,6 +112,45 @@ class RunConfig:
             _check(n <= MAX_IMU_SAMPLES, "imu.rate_hz",
                    f"= {self.imu.rate_hz:g} Hz over the {impact:.0f} s descent makes {n:.3g} "
                    f"samples, above the limit of {MAX_IMU_SAMPLES:,}")
+
+    def _check_closed_loop(self) -> None:
+        """What the closed loop (`fly`) needs of the other sections, and a site its descent
+        orbit reaches."""
+        f, d, i, n = self.flight, self.detection, self.identification, self.navigation
+        ok_sensing = ((d.sensor == "physical" and i.mode in ("tracking", "tracking_lis"))
+                      or (d.sensor == "paper" and i.mode == "simulated"))
+        _check(ok_sensing, "identification.mode", f"= {i.mode!r} with detection.sensor = "
+               f"{d.sensor!r}: the closed loop identifies craters by tracking on its own filter "
+               "(physical sensor, tracking or tracking_lis) or by the paper's coin flip (paper "
+               "sensor, simulated)")
+        _check(d.source == "model", "detection.source", "= \"pixels\" is not flown: the closed "
+               "loop detects with the sensor model (render its frames afterwards)")
+        _check(n.crater_updates in ("tight", "none"), "navigation.crater_updates",
+               f"= {n.crater_updates!r}: the closed loop's navigator fuses craters tightly, or "
+               "not at all (\"none\")")
+        _check(n.init == "dispersed", "navigation.init", "= \"first_fix\": the closed loop "
+               "starts its navigator from a dispersed state (navigation.init_sigma_*)")
+        steps = f.dynamics_rate_hz
+        for key, rate in (("trajectory.frame_rate_hz", self.trajectory.frame_rate_hz),
+                          ("altimeter.rate_hz", self.altimeter.rate_hz),
+                          ("velocimeter.rate_hz", self.velocimeter.rate_hz),
+                          ("imu.record_rate_hz", self.imu.record_rate_hz)):
+            _check(rate <= steps and _whole(steps / rate), key,
+                   f"= {rate:g} Hz does not divide flight.dynamics_rate_hz ({steps:g} Hz): the "
+                   "closed loop samples every whole number of steps")
+        f.vehicle_model(believed=False), f.vehicle_model(believed=True)  # one line if it can't fly
+        try:
+            descent_orbit(f.site_lat_deg, f.site_lon_deg, f.approach_heading_deg,
+                          range_to_site_m=f.pdi_range_km * 1e3, coast_s=f.coast_s,
+                          periapsis_alt_m=f.periapsis_alt_km * 1e3,
+                          apoapsis_alt_m=f.apoapsis_alt_km * 1e3)
+        except ValueError as exc:
+            raise ConfigError(f"flight.site_lat_deg: the descent orbit cannot reach the site "
+                              f"({exc})") from None
+        n_samples = f.max_duration_s * f.dynamics_rate_hz
+        _check(n_samples <= MAX_IMU_SAMPLES, "flight.max_duration_s",
+               f"= {f.max_duration_s:g} s at {f.dynamics_rate_hz:g} Hz makes {n_samples:.3g} "
+               f"steps, above the limit of {MAX_IMU_SAMPLES:,}")
 
     def navigator_imu(self) -> imu.ImuGrade:
         """The IMU error model the filter assumes: navigation.assumed_imu_grade's preset, or the
@@ -157,3 +203,7 @@ class RunConfig:
         e, d = self.estimation, self.detection
         return (d.sigma_bearing if e.assumed_sigma_bearing is None else e.assumed_sigma_bearing,
                 d.sigma_range_m if e.assumed_sigma_range_m is None else e.assumed_sigma_range_m)
+
+
+def _whole(x: float) -> bool:
+    return math.isclose(x, round(x), rel_tol=0.0, abs_tol=1e-9) and round(x) >= 1

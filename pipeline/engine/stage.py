@@ -53,9 +53,13 @@ class StageContext:
         return self.inputs[name]
 
     def output(self, name: str) -> Path:
-        """The path to write output `name` to, or to read one `run` wrote (what `record`
-        reads)."""
+        """The path to write output `name` to."""
         return self.tx.output(name)
+
+    def artifact(self, name: str) -> Path:
+        """The path of an artifact to read: one this stage wrote, else an input."""
+        own = self.tx.folder / name
+        return own if own.is_file() else self.inputs[name]
 
 
 @dataclass(frozen=True)

@@ -29,8 +29,6 @@ from pipeline.core.sensors.camera import ray_sphere_distance
 from pipeline.io.tables import quat_columns, xyz_columns
 from pipeline.ops.trajectory import propagate
 
-BORESIGHT_BODY = np.array([0.0, 0.0, 1.0])
-
 
 @dataclass(frozen=True)
 class Sensors:
@@ -106,13 +104,13 @@ def simulate(traj: TrajectoryConfig, cfg: ImuConfig, alt: AltimeterConfig, seed:
 def simulate_altimeter(descent: Descent, alt: AltimeterConfig, seed: int,
                        span_s: tuple[float, float]) -> pl.DataFrame:
     """Laser altimeter samples at k / rate_hz in span_s (s) and before impact: the true slant
-    range along the boresight to the sphere, noise of 1-sigma sigma_m + sigma_share * range, no
+    range along its beam to the sphere, noise of 1-sigma sigma_m + sigma_share * range, no
     return beyond max_range_km or during a dropout, and a bias step during a bias fault."""
     n = int(np.floor(descent.t_impact_s * alt.rate_hz))
     t = np.arange(n + 1) / alt.rate_hz
     t = t[(t < descent.t_impact_s) & (t >= span_s[0]) & (t <= span_s[1])]
     r, _, q = descent.states(t)
-    b = np.einsum("kij,j->ki", dcm_from_q(q), BORESIGHT_BODY)
+    b = np.einsum("kij,j->ki", dcm_from_q(q), alt.beam_body())
     rho_true = ray_sphere_distance(r, b, MOON_RADIUS_M)
     sigma = alt.sigma_m + alt.sigma_share * rho_true
     rng = stream(seed, "altimeter")

@@ -74,15 +74,11 @@ def _at(x: NavState, i: int) -> NavState:
                     x.b_accel_m_s2[i])
 
 
-def initial_state(opts: NavigateOptions, truth: pl.DataFrame, estimates: pl.DataFrame,
-                  seed: int) -> tuple[float, NavState, np.ndarray, np.ndarray]:
-    """Start time (s), state, covariance (15, 15) and the drawn error (15,) (est minus true at
-    the start): the truth plus a seeded draw (dispersed), or the first ok fix of loose_method for
-    position and attitude with a drawn velocity error (first_fix). Biases start at 0 with the
-    IMU model's switch-on sigma."""
+def initial_draw(opts: NavigateOptions, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The start's 1-sigma (15,) and its seeded error draw (15,) (stream "init"): position,
+    velocity and attitude from the options, biases with the IMU model's switch-on sigma (drawn
+    as 0: the filter starts them at 0)."""
     rng = stream(seed, "init")
-    true = truth_states(truth)
-    t = truth["t_s"].to_numpy()
     sig = np.zeros(N_STATES)
     sig[POS] = opts.init_sigma_position_m
     sig[VEL] = opts.init_sigma_velocity_m_s
@@ -91,28 +87,47 @@ def initial_state(opts: NavigateOptions, truth: pl.DataFrame, estimates: pl.Data
     sig[BA] = opts.imu.accel.initial_bias_sigma
     draw = sig * rng.standard_normal(N_STATES)
     draw[BG] = draw[BA] = 0.0
-    p0 = np.diag(sig**2)
+    return sig, draw
+
+
+def dispersed_state(opts: NavigateOptions, x_true: NavState, seed: int
+                    ) -> tuple[NavState, np.ndarray, np.ndarray]:
+    """The filter's dispersed start from the true state: the truth (biases 0) plus the seeded
+    draw (`initial_draw`), its covariance (15, 15) and the drawn error (15,)."""
+    sig, draw = initial_draw(opts, seed)
+    x0 = eskf.inject(NavState(x_true.r_mci_m, x_true.v_mci_m_s, x_true.q_mci_from_body,
+                              np.zeros(3), np.zeros(3)), draw)
+    return x0, np.diag(sig**2), draw
+
+
+def initial_state(opts: NavigateOptions, truth: pl.DataFrame, estimates: pl.DataFrame,
+                  seed: int) -> tuple[float, NavState, np.ndarray, np.ndarray]:
+    """Start time (s), state, covariance (15, 15) and the drawn error (15,) (est minus true at
+    the start): the truth plus a seeded draw (dispersed), or the first ok fix of loose_method for
+    position and attitude with a drawn velocity error (first_fix). Biases start at 0 with the
+    IMU model's switch-on sigma."""
+    true = truth_states(truth)
+    t = truth["t_s"].to_numpy()
     if opts.init == "dispersed":
-        i0 = 0
-        x_true = _at(true, i0)
-        x0 = eskf.inject(NavState(x_true.r_mci_m, x_true.v_mci_m_s, x_true.q_mci_from_body,
-                                  np.zeros(3), np.zeros(3)), draw)
-    else:
-        fixes = estimates.filter((pl.col("method") == opts.loose_method)
-                                 & (pl.col("status") == Status.OK)).sort("t_s")
-        if fixes.height == 0:
-            raise _NoFix(opts.loose_method)
-        t_fix = float(fixes["t_s"][0])
-        i0 = int(np.searchsorted(t, t_fix))
-        if i0 >= t.size or abs(t[i0] - t_fix) > 1e-9:
-            raise ValueError(f"the first fix at {t_fix} s is not a record time")
-        x_true = _at(true, i0)
-        fix = fixes.row(0, named=True)
-        x0 = NavState(xyz(fixes.head(1), "r_mci", "_m")[0],
-                      x_true.v_mci_m_s + draw[VEL], quats(fixes.head(1), "q_mci_from_body")[0],
-                      np.zeros(3), np.zeros(3))
-        cov = np.asarray(fix["cov"]).reshape(6, 6)
-        p0[np.ix_(eskf.POSE, eskf.POSE)] = cov
+        x0, p0, _ = dispersed_state(opts, _at(true, 0), seed)
+        return float(t[0]), x0, p0, eskf.difference(x0, _at(true, 0))
+    sig, draw = initial_draw(opts, seed)
+    p0 = np.diag(sig**2)
+    fixes = estimates.filter((pl.col("method") == opts.loose_method)
+                             & (pl.col("status") == Status.OK)).sort("t_s")
+    if fixes.height == 0:
+        raise _NoFix(opts.loose_method)
+    t_fix = float(fixes["t_s"][0])
+    i0 = int(np.searchsorted(t, t_fix))
+    if i0 >= t.size or abs(t[i0] - t_fix) > 1e-9:
+        raise ValueError(f"the first fix at {t_fix} s is not a record time")
+    x_true = _at(true, i0)
+    fix = fixes.row(0, named=True)
+    x0 = NavState(xyz(fixes.head(1), "r_mci", "_m")[0],
+                  x_true.v_mci_m_s + draw[VEL], quats(fixes.head(1), "q_mci_from_body")[0],
+                  np.zeros(3), np.zeros(3))
+    cov = np.asarray(fix["cov"]).reshape(6, 6)
+    p0[np.ix_(eskf.POSE, eskf.POSE)] = cov
     return float(t[i0]), x0, p0, eskf.difference(x0, x_true)
 
 
@@ -182,13 +197,13 @@ def navigate(opts: NavigateOptions, imu_table: pl.DataFrame, truth: pl.DataFrame
     t_rec = truth["t_s"].to_numpy()
     records = filter.run(x0, p0, t0, imu, meas, t_rec, opts.filter)
     dr = filter.dead_reckon(x0, t0, imu, t_rec[t_rec >= t0], opts.filter.gravity)
-    table = _table(records, truth, dr, frame_of_time, opts.filter.smooth,
+    table = navigation_table(records, truth, dr, frame_of_time, opts.filter.smooth,
                    opts.consistency_probability)
     facts = {"t_start_s": t0, "initial_error": draw.tolist(), "measurements": len(meas)}
     return table, facts
 
 
-def _table(records: list[filter.Record], truth: pl.DataFrame, dr: NavState,
+def navigation_table(records: list[filter.Record], truth: pl.DataFrame, dr: NavState,
            frame_of_time: dict[float, int], smooth: bool, consistency_probability: float
            ) -> pl.DataFrame:
     """One row per truth time: estimate, 1-sigma, true error, NEES, NIS and update counts; rows

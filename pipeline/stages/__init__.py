@@ -11,6 +11,7 @@ from pipeline.engine.dag import Dag
 from pipeline.stages import (
     detect,
     estimate,
+    fly,
     imu,
     ingest,
     navigate,
@@ -19,8 +20,8 @@ from pipeline.stages import (
     trajectory,
 )
 
-STAGES = (ingest.STAGE, trajectory.STAGE, imu.STAGE, render.STAGE, detect.STAGE, estimate.STAGE,
-          navigate.STAGE, score.STAGE)
+STAGES = (ingest.STAGE, trajectory.STAGE, imu.STAGE, fly.STAGE, render.STAGE, detect.STAGE,
+          estimate.STAGE, navigate.STAGE, score.STAGE)
 DAG = Dag(STAGES)
 
 RUN_TARGET = "score"  # `just run` brings this stage and everything it needs up to date

@@ -126,6 +126,7 @@ def run(ctx: StageContext) -> StageResult:
 
 
 STAGE = Stage(
+    active=lambda cfg: not cfg.flight.closed_loop,  # else `fly` writes these outputs
     name="detect",
     doc="craters in view, visible (Eq. 9), identified, used; their measurements",
     reads=("detection", "identification", "trajectory.epoch_utc", "seed"),

@@ -40,6 +40,7 @@ def run(ctx: StageContext) -> StageResult:
 
 
 STAGE = Stage(
+    active=lambda cfg: not cfg.flight.closed_loop,  # else `fly` writes these outputs
     name="imu",
     doc="IMU increments and laser-altimeter ranges from the true descent",
     reads=("trajectory", "imu", "altimeter", "seed"),

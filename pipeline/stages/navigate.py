@@ -43,7 +43,7 @@ def options(cfg: RunConfig) -> NavigateOptions:
         imu_rate_hz=cfg.imu.rate_hz,
         filter=FilterOptions(noise=process_noise(assumed_imu), sigma_bearing=sigma_bearing,
                              sigma_range_m=sigma_range_m, gate_probability=n.gate_probability,
-                             gravity=n.gravity,
+                             gravity=n.gravity, altimeter_beam_body=cfg.altimeter.beam_body(),
                              max_step_s=n.max_step_s, smooth=n.smoother))
 
 
@@ -83,9 +83,11 @@ def run(ctx: StageContext) -> StageResult:
 
 
 STAGE = Stage(
+    active=lambda cfg: not cfg.flight.closed_loop,  # else `fly` writes these outputs
     name="navigate",
     doc="error-state EKF: IMU with crater and altimeter updates over the descent",
-    reads=("navigation", "altimeter.sigma_m", "altimeter.sigma_share", "imu", "estimation",
+    reads=("navigation", "altimeter.sigma_m", "altimeter.sigma_share",
+           "altimeter.beam_mounting_deg", "imu", "estimation",
            "detection", "seed"),
     inputs=("trajectory.parquet", "imu.parquet", "imu_truth.parquet", "altimeter.parquet",
             "detections.parquet", "frames.parquet", "estimates.parquet"),

@@ -30,6 +30,7 @@ def run(ctx: StageContext) -> StageResult:
 
 
 STAGE = Stage(
+    active=lambda cfg: not cfg.flight.closed_loop,  # else `fly` writes these outputs
     name="trajectory",
     doc="the true descent from the 300 km apoapsis to impact",
     reads=("trajectory",),

@@ -20,6 +20,7 @@ TAGS: dict[str, int] = {
     "rough_position": 0x1D5,  # lost in space: the rough position's error
     "rough_velocity": 0x1D6,  # lost in space: the rough velocity a fix starts the filter with
     "render": 0x12E4D,  # per frame: the rendered surface's roughness and the sensor's noise
+    "velocimeter": 0xD0F,  # the Doppler velocimeter's noise (the closed loop)
 }
 
 

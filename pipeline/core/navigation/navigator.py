@@ -46,7 +46,7 @@ from pipeline.core.sensors.detection import (
     measure_physical,
     ranges,
 )
-from pipeline.core.sensors.rim_sensing import Sensing
+from pipeline.core.sensors.rim_sensing import Sensed, Sensing
 from pipeline.core.vision.identification import select_used
 from pipeline.core.vision.identify import (
     TRACK_MIN_MATCHES,
@@ -68,6 +68,17 @@ class Tracker:
 
 
 @dataclass(frozen=True)
+class Identification:
+    """What crater identification needs: the sensor model, its options, the navigator's
+    catalogue and the lost-in-space indexes."""
+
+    model: DetectionModel
+    opts: IdentifyOptions
+    craters: CraterArrays
+    indexes: IndexCache
+
+
+@dataclass(frozen=True)
 class FrameResult:
     """One frame's identification: the detections (truth and what was matched), and facts."""
 
@@ -81,34 +92,61 @@ class FrameResult:
     prior_sigma_px: float
 
 
-def identify_frames(model: DetectionModel, opts: IdentifyOptions, craters: CraterArrays,
-                    sensing: Sensing, t_s: np.ndarray, frame: np.ndarray, theta_rad: np.ndarray,
-                    r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
-                    sun_mcmf_m: np.ndarray, start: Tracker | None, imu: filter.ImuSamples,
-                    altimeter: list[filter.AltimeterSample], v_rough_mci_m_s: np.ndarray,
-                    indexes: IndexCache, seed: int,
-                    advance: Callable[[], None] | None = None) -> list[FrameResult]:
-    """Every frame's identification of the detections `sensing` reports, in time order (the
-    tracker's filter runs through them), against the navigator's catalogue `craters`.
+class Navigator:
+    """The flight software's navigation, frame by frame: the filter's state (a `Tracker`) and
+    crater identification on it. `coast` predicts it through the IMU (fusing the altimeter on
+    the way), `update` fuses other measurements, `camera_frame` identifies a frame's detections
+    (tracking, or lost in space to start and to recover) and, with `crater_updates`, updates the
+    filter with the identified craters (tightly coupled). The open-loop identification
+    (`identify_frames`) and the closed loop (`pipeline.sim`) use it alike.
 
-    The truth (r_mcmf_m (F, 3) m, dcm_body_from_mcmf (F, 3, 3)) gives the star tracker's
-    attitude and the rough position only; sun_mcmf_m (F, 3) (m) is the ephemeris' Sun; `start`
-    is the filter's initial state (None: lost); `v_rough_mci_m_s` (F, 3) the rough velocity a
-    lost-in-space fix starts the filter with."""
-    phys = model.physical
-    assert phys is not None
-    cam = phys.camera
-    rough_offset = _rough_offset(seed, opts.rough_position_error_m)
-    tracker = start
-    failures = 0
-    alt_times = np.array([a.t_s for a in altimeter])
-    out = []
-    for i in range(t_s.size):
-        rngs = frame_rngs(seed, int(frame[i]))
-        dcm_mci_from_mcmf = frames.dcm_mci_from_mcmf(theta_rad[i])
-        if tracker is not None:
-            tracker = _coast(tracker, float(t_s[i]), imu, altimeter, alt_times, opts)
-        s = sensing(i, rngs)
+    The truth passed to `camera_frame` (the true position and attitude) serves the star
+    tracker's attitude and the rough position of lost in space only."""
+
+    def __init__(self, filter_opts: filter.FilterOptions, start: Tracker | None,
+                 identification: Identification | None = None, seed: int = 0,
+                 crater_updates: bool = True) -> None:
+        self.filter_opts = filter_opts
+        self.identification = identification
+        self.tracker = start
+        self.failures = 0
+        self.crater_updates = crater_updates
+        self.rough_offset = (np.zeros(3) if identification is None else
+                             _rough_offset(seed, identification.opts.rough_position_error_m))
+        self.updates: list[filter.Record] = []  # every update's record, for its counts and NIS
+
+    def coast(self, t_s: float, imu: filter.ImuSamples,
+              altimeter: list[filter.AltimeterSample], alt_times: np.ndarray) -> None:
+        """Predict the filter to t_s, fusing the altimeter samples in (t, t_s] on the way."""
+        if self.tracker is not None:
+            self.tracker = _coast(self.tracker, t_s, imu, altimeter, alt_times,
+                                  self.filter_opts)
+
+    def update(self, batch: list[filter.Measurement]) -> filter.Record | None:
+        """Fuse measurements at the filter's time (gated); None before the filter starts."""
+        tr = self.tracker
+        if tr is None:
+            return None
+        rec = filter.update(tr.x, tr.p, tr.t_s, batch, self.filter_opts)
+        self.tracker = Tracker(rec.x, rec.p, tr.t_s)
+        self.updates.append(rec)
+        return rec
+
+    def camera_frame(self, t_s: float, frame: int, theta_rad: float, s: Sensed,
+                     r_mcmf_true_m: np.ndarray, dcm_body_from_mcmf_true: np.ndarray,
+                     sun_mcmf_m: np.ndarray, rngs: dict[str, np.random.Generator],
+                     v_rough_mci_m_s: np.ndarray) -> FrameResult:
+        """One frame's identification of the reported detections `s` at the filter's time t_s
+        (s) (the filter predicted there by `coast`), the filter's update or restart, and the
+        navigator's measurements of the identified craters."""
+        ident = self.identification
+        assert ident is not None  # a navigator without identification sees no rim ellipses
+        opts, model, craters, indexes = ident.opts, ident.model, ident.craters, ident.indexes
+        phys = model.physical
+        assert phys is not None
+        cam = phys.camera
+        tracker = self.tracker
+        dcm_mci_from_mcmf = frames.dcm_mci_from_mcmf(theta_rad)
         meas = s.meas
 
         t0, built_s = time.perf_counter(), indexes.build_s
@@ -116,28 +154,28 @@ def identify_frames(model: DetectionModel, opts: IdentifyOptions, craters: Crate
         # too wide a prior, or (with lost in space to recover) tracking failing frame after
         # frame; plain tracking keeps trying, having nothing else
         lost = (tracker is None or sigma_px > opts.track_max_sigma_px
-                or (opts.mode == "tracking_lis" and failures >= opts.lost_after_frames))
+                or (opts.mode == "tracking_lis" and self.failures >= opts.lost_after_frames))
         result: Match | None = None
         mode = "none"
         if opts.mode == "lost_in_space" or (opts.mode == "tracking_lis" and lost):
             if meas.semi_major_px.size >= opts.min_matches:
                 mode = "lost_in_space"
                 r_rough = (tracker.x.r_mci_m if tracker is not None and opts.mode != "lost_in_space"
-                           else dcm_mci_from_mcmf @ (r_mcmf_m[i] + rough_offset))
+                           else dcm_mci_from_mcmf @ (r_mcmf_true_m + self.rough_offset))
                 radius = opts.prior_radius_m
                 if tracker is not None and opts.mode != "lost_in_space":
                     radius = max(radius, 3.0 * float(np.sqrt(np.linalg.eigvalsh(
                         tracker.p[POS, POS])[-1])))
-                star = star_tracker(dcm_body_from_mcmf[i], dcm_mci_from_mcmf,
-                                     opts.star_tracker_sigma_rad, rngs["star"])
+                star = star_tracker(dcm_body_from_mcmf_true, dcm_mci_from_mcmf,
+                                    opts.star_tracker_sigma_rad, rngs["star"])
                 result = lost_in_space(meas, r_rough, radius, star, dcm_mci_from_mcmf,
-                                        sun_mcmf_m[i], craters, model, opts, indexes,
-                                        rngs["verify"])
+                                       sun_mcmf_m, craters, model, opts, indexes,
+                                       rngs["verify"])
         elif tracker is not None and not lost:
             mode = "tracking"
             result = track(meas, tracker.x.r_mci_m, tracker.x.q_mci_from_body,
-                            tracker.p[np.ix_(POSE, POSE)], dcm_mci_from_mcmf, sun_mcmf_m[i],
-                            craters, model, opts, rngs["verify"])
+                           tracker.p[np.ix_(POSE, POSE)], dcm_mci_from_mcmf, sun_mcmf_m,
+                           craters, model, opts, rngs["verify"])
         index_ms = 1e3 * (indexes.build_s - built_s)  # building an index is not the frame's
         elapsed_ms = 1e3 * (time.perf_counter() - t0) - index_ms
 
@@ -151,17 +189,17 @@ def identify_frames(model: DetectionModel, opts: IdentifyOptions, craters: Crate
         matched = np.where(identified, matched, -1)
         confidence = np.where(identified, confidence, np.nan)  # of the matches kept only
         if mode == "tracking":
-            failures = 0 if ok else failures + int(n >= TRACK_MIN_MATCHES)
-        if result is not None and opts.mode != "lost_in_space":
+            self.failures = 0 if ok else self.failures + int(n >= TRACK_MIN_MATCHES)
+        if result is not None and opts.mode != "lost_in_space" and self.crater_updates:
             if mode == "lost_in_space" and ok:
-                tracker = _restart(tracker, result, float(t_s[i]), v_rough_mci_m_s[i],
-                                   opts.restart_sigma)
-                failures = 0
+                tracker = _restart(tracker, result, t_s, v_rough_mci_m_s, opts.restart_sigma)
+                self.failures = 0
             elif mode == "tracking" and tracker is not None and identified.any():
-                tracker = _update(tracker, result, identified, int(frame[i]), opts)
+                tracker, rec = _update(tracker, result, identified, frame, self.filter_opts)
+                self.updates.append(rec)
+        self.tracker = tracker
         # the navigator's measurements, from the craters it identified (NaN where none)
-        nav_att = (result.dcm_body_from_mcmf if result is not None
-                   else dcm_body_from_mcmf[i])
+        nav_att = (result.dcm_body_from_mcmf if result is not None else dcm_body_from_mcmf_true)
         u_meas, rho_size = measure_physical(phys, meas, matched, craters,
                                             phys.camera.dcm_cam_from_body @ nav_att)
         rho_meas = ranges(phys, model.sigma_range_m, s.rho_true_m, rho_size, rngs["noise"])
@@ -180,8 +218,34 @@ def identify_frames(model: DetectionModel, opts: IdentifyOptions, craters: Crate
             u_meas_body=u_meas, rho_meas_m=rho_meas, pixel_uv=pixel, identified=identified,
             used=used, n_candidates=s.n_candidates, d_min_km=float("nan"),
             corners_mcmf_m=s.corners_mcmf_m, physical=columns)
-        out.append(FrameResult(det, mode, confidence, s.truth_row < 0, ok, elapsed_ms,
-                               index_ms, float(sigma_px)))
+        return FrameResult(det, mode, confidence, s.truth_row < 0, ok, elapsed_ms, index_ms,
+                           float(sigma_px))
+
+
+def identify_frames(model: DetectionModel, opts: IdentifyOptions, craters: CraterArrays,
+                    sensing: Sensing, t_s: np.ndarray, frame: np.ndarray, theta_rad: np.ndarray,
+                    r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
+                    sun_mcmf_m: np.ndarray, start: Tracker | None, imu: filter.ImuSamples,
+                    altimeter: list[filter.AltimeterSample], v_rough_mci_m_s: np.ndarray,
+                    indexes: IndexCache, seed: int,
+                    advance: Callable[[], None] | None = None) -> list[FrameResult]:
+    """Every frame's identification of the detections `sensing` reports, in time order (the
+    navigator's filter runs through them), against the navigator's catalogue `craters`.
+
+    The truth (r_mcmf_m (F, 3) m, dcm_body_from_mcmf (F, 3, 3)) gives the star tracker's
+    attitude and the rough position only; sun_mcmf_m (F, 3) (m) is the ephemeris' Sun; `start`
+    is the filter's initial state (None: lost); `v_rough_mci_m_s` (F, 3) the rough velocity a
+    lost-in-space fix starts the filter with."""
+    navigator = Navigator(opts.filter, start, Identification(model, opts, craters, indexes), seed)
+    alt_times = np.array([a.t_s for a in altimeter])
+    out = []
+    for i in range(t_s.size):
+        rngs = frame_rngs(seed, int(frame[i]))
+        navigator.coast(float(t_s[i]), imu, altimeter, alt_times)
+        s = sensing(i, rngs)
+        out.append(navigator.camera_frame(float(t_s[i]), int(frame[i]), float(theta_rad[i]), s,
+                                          r_mcmf_m[i], dcm_body_from_mcmf[i], sun_mcmf_m[i],
+                                          rngs, v_rough_mci_m_s[i]))
         if advance is not None:
             advance()
     return out
@@ -189,31 +253,31 @@ def identify_frames(model: DetectionModel, opts: IdentifyOptions, craters: Crate
 
 def _coast(tr: Tracker, t_s: float, imu: filter.ImuSamples,
            altimeter: list[filter.AltimeterSample], alt_times: np.ndarray,
-           opts: IdentifyOptions) -> Tracker:
+           opts: filter.FilterOptions) -> Tracker:
     """The tracker's filter predicted to t_s, fusing the altimeter samples in (t, t_s]."""
     x, p, t = tr.x, tr.p, tr.t_s
     lo = int(np.searchsorted(alt_times, t + filter.TIME_TOL_S))
     hi = int(np.searchsorted(alt_times, t_s + filter.TIME_TOL_S))
     for a in altimeter[lo:hi]:
         if a.t_s - t > filter.TIME_TOL_S:
-            x, p = filter.predict(x, p, t, a.t_s, imu, opts.filter)
+            x, p = filter.predict(x, p, t, a.t_s, imu, opts)
             t = a.t_s
-        rec = filter.update(x, p, t, [a], opts.filter)
+        rec = filter.update(x, p, t, [a], opts)
         x, p = rec.x, rec.p
     if t_s - t > filter.TIME_TOL_S:
-        x, p = filter.predict(x, p, t, t_s, imu, opts.filter)
+        x, p = filter.predict(x, p, t, t_s, imu, opts)
         t = t_s
     return Tracker(x, p, t)
 
 
-def _update(tr: Tracker, m: Match, k: np.ndarray, frame: int, opts: IdentifyOptions
-            ) -> Tracker:
+def _update(tr: Tracker, m: Match, k: np.ndarray, frame: int, opts: filter.FilterOptions
+            ) -> tuple[Tracker, filter.Record]:
     """The tracker's filter updated with a frame's identified craters k (n,) (tightly
-    coupled, gated)."""
+    coupled, gated), and the update's record."""
     rec = filter.update(tr.x, tr.p, tr.t_s, [filter.CraterFrame(
         tr.t_s, frame, m.c_mci_m[k], m.u_body[k], m.rho_m[k], m.sigma_bearing[k],
-        m.sigma_range_m[k])], opts.filter)
-    return Tracker(rec.x, rec.p, tr.t_s)
+        m.sigma_range_m[k])], opts)
+    return Tracker(rec.x, rec.p, tr.t_s), rec
 
 
 def _restart(tr: Tracker | None, m: Match, t_s: float, v_rough_mci_m_s: np.ndarray,

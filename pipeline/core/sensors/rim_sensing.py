@@ -42,38 +42,48 @@ class Sensed:
 Sensing = Callable[[int, dict[str, np.random.Generator]], Sensed]  # frame index, its streams
 
 
-def model_sensing(model: DetectionModel, false_detection_share: float, seen: CraterArrays,
-                  r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray, sun_mcmf_m: np.ndarray
-                  ) -> Sensing:
-    """The physical sensor model's detections (`sense_physical`) of the world `seen` (its
-    craters with the catalogue errors) plus false detections (`false_ellipses`), per frame of
-    the truth r_mcmf_m (F, 3) m, dcm_body_from_mcmf (F, 3, 3) and the Sun sun_mcmf_m (F, 3) m."""
+def sense_frame(model: DetectionModel, false_detection_share: float, seen: CraterArrays,
+                world: sensor.World, r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
+                sun_mcmf_m: np.ndarray, rngs: dict[str, np.random.Generator]) -> Sensed:
+    """The physical sensor model's detections (`sense_physical`) of the world (`seen`, its
+    craters with the catalogue errors `world`) from one true pose r_mcmf_m (3,) (m),
+    dcm_body_from_mcmf (3, 3), under the Sun sun_mcmf_m (3,) (m), plus false detections
+    (`false_ellipses`)."""
     phys = model.physical
     assert phys is not None
     cam = phys.camera
+    s = sense_physical(model, seen, world, r_mcmf_m, dcm_body_from_mcmf, rngs, sun_mcmf_m)
+    fake = false_ellipses(rngs["false"], s.row.size, false_detection_share,
+                          cam.width_px, cam.height_px, phys.detectability.min_diameter_px)
+    u_fake = sensor.bearings_body(cam, fake, None)
+    rho_fake = camera.ray_sphere_distance(r_mcmf_m, u_fake @ dcm_body_from_mcmf, MOON_RADIUS_M)
+    pad = np.full(fake.semi_major_px.size, np.nan)
+    rho = np.linalg.norm(s.p_body_m, axis=1)
+    return Sensed(concat_ellipses(s.meas, fake), np.r_[s.row, np.full(pad.size, -1)],
+                  np.vstack([s.p_body_m / rho[:, None], u_fake]), np.r_[rho, rho_fake],
+                  {name: np.r_[col, pad] for name, col in s.columns.items()},
+                  s.n_candidates, s.corners_mcmf_m)
+
+
+def model_sensing(model: DetectionModel, false_detection_share: float, seen: CraterArrays,
+                  r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray, sun_mcmf_m: np.ndarray
+                  ) -> Sensing:
+    """`sense_frame` per frame of the truth r_mcmf_m (F, 3) m, dcm_body_from_mcmf (F, 3, 3)
+    and the Sun sun_mcmf_m (F, 3) m."""
+    phys = model.physical
+    assert phys is not None
     world = sensor.world_craters(seen.r_mcmf_m, seen.diam_km * 1e3, seen.crater_id,
                                  phys.catalogue_errors, phys.world_seed)
 
     def sense(i: int, rngs: dict[str, np.random.Generator]) -> Sensed:
-        s = sense_physical(model, seen, world, r_mcmf_m[i], dcm_body_from_mcmf[i], rngs,
-                           sun_mcmf_m[i])
-        fake = false_ellipses(rngs["false"], s.row.size, false_detection_share,
-                              cam.width_px, cam.height_px, phys.detectability.min_diameter_px)
-        u_fake = sensor.bearings_body(cam, fake, None)
-        rho_fake = camera.ray_sphere_distance(r_mcmf_m[i], u_fake @ dcm_body_from_mcmf[i],
-                                              MOON_RADIUS_M)
-        pad = np.full(fake.semi_major_px.size, np.nan)
-        rho = np.linalg.norm(s.p_body_m, axis=1)
-        return Sensed(concat_ellipses(s.meas, fake), np.r_[s.row, np.full(pad.size, -1)],
-                      np.vstack([s.p_body_m / rho[:, None], u_fake]), np.r_[rho, rho_fake],
-                      {name: np.r_[col, pad] for name, col in s.columns.items()},
-                      s.n_candidates, s.corners_mcmf_m)
+        return sense_frame(model, false_detection_share, seen, world, r_mcmf_m[i],
+                           dcm_body_from_mcmf[i], sun_mcmf_m[i], rngs)
 
     return sense
 
 
 def concat_ellipses(a: sensor.EllipseMeasurement, b: sensor.EllipseMeasurement
-            ) -> sensor.EllipseMeasurement:
+                    ) -> sensor.EllipseMeasurement:
     return sensor.EllipseMeasurement(
         np.vstack([a.centre_px, b.centre_px]), np.r_[a.semi_major_px, b.semi_major_px],
         np.r_[a.semi_minor_px, b.semi_minor_px], np.r_[a.angle_rad, b.angle_rad],

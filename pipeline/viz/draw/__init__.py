@@ -20,10 +20,11 @@ class Drawing(Protocol):
     cfg: Any
     store: Any
 
-    def input(self, name: str) -> Path: ...
-
     def output(self, name: str) -> Path: ...
 
+    def artifact(self, name: str) -> Path: ...
 
-def table(ctx: Drawing, name: str, own: bool = False) -> pl.DataFrame:
-    return pl.read_parquet(ctx.output(name) if own else ctx.input(name))
+
+def table(ctx: Drawing, name: str) -> pl.DataFrame:
+    """A table the stage wrote or reads (`StageContext.artifact`)."""
+    return pl.read_parquet(ctx.artifact(name))

@@ -11,5 +11,5 @@ def record_detect(ctx: Drawing) -> None:
     with layout.recording(ctx.store.run_id, ctx.output("detection.rrd")) as rec:
         detection.log_detection(rec, model_of(ctx.cfg.detection),
                                 table(ctx, "trajectory.parquet"),
-                                table(ctx, "detections.parquet", own=True),
-                                table(ctx, "frames.parquet", own=True))
+                                table(ctx, "detections.parquet"),
+                                table(ctx, "frames.parquet"))

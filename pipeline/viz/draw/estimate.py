@@ -8,6 +8,6 @@ from pipeline.viz.rerun import estimation, layout
 
 def record_estimate(ctx: Drawing) -> None:
     with layout.recording(ctx.store.run_id, ctx.output("estimation.rrd")) as rec:
-        estimation.log_estimation(rec, table(ctx, "estimates.parquet", own=True),
+        estimation.log_estimation(rec, table(ctx, "estimates.parquet"),
                                   table(ctx, "detections.parquet"),
                                   table(ctx, "trajectory.parquet"))

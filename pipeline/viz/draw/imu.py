@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 from pipeline.viz.draw import Drawing, table
 from pipeline.viz.rerun import inertial, layout
 
@@ -9,10 +11,10 @@ RECORDED_IMU_RATE_HZ = 1.0  # the IMU's measured rates in the recording (the tab
 
 
 def record_imu(ctx: Drawing) -> None:
-    rate = ctx.cfg.imu.rate_hz
+    rate = float(json.loads(ctx.artifact("imu.json").read_text())["imu_rate_hz"])
     every = max(round(rate / RECORDED_IMU_RATE_HZ), 1)
     with layout.recording(ctx.store.run_id, ctx.output("imu.rrd")) as rec:
-        inertial.log_imu(rec, table(ctx, "imu_truth.parquet", own=True),
-                         table(ctx, "altimeter.parquet", own=True),
-                         table(ctx, "imu.parquet", own=True).gather_every(every),
+        inertial.log_imu(rec, table(ctx, "imu_truth.parquet"),
+                         table(ctx, "altimeter.parquet"),
+                         table(ctx, "imu.parquet").gather_every(every),
                          imu_rate_hz=rate, frames=table(ctx, "trajectory.parquet"))

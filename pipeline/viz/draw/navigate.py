@@ -8,4 +8,4 @@ from pipeline.viz.rerun import layout, navigation
 
 def record_navigate(ctx: Drawing) -> None:
     with layout.recording(ctx.store.run_id, ctx.output("navigation.rrd")) as rec:
-        navigation.log_navigation(rec, table(ctx, "navigation.parquet", own=True))
+        navigation.log_navigation(rec, table(ctx, "navigation.parquet"))

@@ -13,10 +13,10 @@ CONTACT_SHEET_FRAMES = 4
 def record_render(ctx: Drawing) -> None:
     """The rendered images (JPEG) with their rims in render.rrd, and the contact sheet."""
     cfg = ctx.cfg
-    stored = table(ctx, "camera_images.parquet", own=True)
-    detections = table(ctx, "pixel_detections.parquet", own=True)
-    truth = table(ctx, "rendered_craters.parquet", own=True)
-    per_image = table(ctx, "images.parquet", own=True)
+    stored = table(ctx, "camera_images.parquet")
+    detections = table(ctx, "pixel_detections.parquet")
+    truth = table(ctx, "rendered_craters.parquet")
+    per_image = table(ctx, "images.parquet")
     frames = images.decode_images(stored)
     jpegs = [images.encode_jpeg(img, cfg.render.recording_size_px, cfg.render.bits)
              for img in frames]

@@ -13,21 +13,21 @@ from pipeline.viz.rerun import estimation, layout
 def record_score(ctx: Drawing) -> None:
     """The scores' recording, the viewer's layout file and report.md with its figures."""
     cfg = ctx.cfg
-    scores = table(ctx, "scores.parquet", own=True)
+    scores = table(ctx, "scores.parquet")
     with layout.recording(ctx.store.run_id, ctx.output("scoring.rrd")) as rec:
         estimation.log_scoring(rec, scores)
     layout.save_layout(ctx.output("layout.rbl"), scores)
     rendering = None
     if cfg.render.enabled:
-        rendering = (json.loads(ctx.input("render.json").read_text()),
+        rendering = (json.loads(ctx.artifact("render.json").read_text()),
                      table(ctx, "detection_recall.parquet"), table(ctx, "images.parquet"))
-    facts = json.loads(ctx.input("trajectory.json").read_text())
+    facts = json.loads(ctx.artifact("trajectory.json").read_text())
     run_report.write_run_report(
         ctx, cfg, ctx.store.run_id, table(ctx, "trajectory.parquet"),
-        table(ctx, "frames.parquet"), scores, table(ctx, "summary.parquet", own=True),
-        facts["t_impact_s"], by_used=table(ctx, "by_craters_used.parquet", own=True),
+        table(ctx, "frames.parquet"), scores, table(ctx, "summary.parquet"),
+        facts["t_impact_s"], by_used=table(ctx, "by_craters_used.parquet"),
         navigation=table(ctx, "navigation.parquet"),
-        nav_summary=table(ctx, "navigation_summary.parquet", own=True),
-        identification=table(ctx, "identification.parquet", own=True),
+        nav_summary=table(ctx, "navigation_summary.parquet"),
+        identification=table(ctx, "identification.parquet"),
         by_detections=identification_by_detections(table(ctx, "frames.parquet")),
         rendering=rendering)

@@ -9,7 +9,7 @@ from pipeline.viz.rerun import trajectory as rerun_trajectory
 
 
 def record_trajectory(ctx: Drawing) -> None:
-    t = table(ctx, "trajectory.parquet", own=True)
+    t = table(ctx, "trajectory.parquet")
     with layout.recording(ctx.store.run_id, ctx.output("trajectory.rrd")) as rec:
         rerun_trajectory.log_trajectory(
             rec, t["frame"].to_numpy(), t["t_s"].to_numpy(), xyz(t, "r_mci", "_m"),

@@ -1,0 +1,122 @@
+"""The flight software of the closed loop: the navigator (`pipeline.core.navigation.navigator`:
+the error-state filter, crater identification on it) fed by the sensors, and a guidance law
+(`pipeline.core.guidance`) flying the navigated state to the target. It books the mass it
+believes from the thrust it commands and the Isp it assumes. It reads only what the sensors
+give; with `guidance_input = "truth"` the law flies the true state instead (perfect navigation:
+what guidance alone misses by) while the navigator still runs beside it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.core.dynamics.powered import G0_M_S2, LanderState, Vehicle
+from pipeline.core.guidance.base import GuidanceLaw, NavigatedState, Target, ThrustCommand
+from pipeline.core.navigation import filter
+from pipeline.core.navigation.eskf import NavState
+from pipeline.core.navigation.models import Record
+from pipeline.core.navigation.navigator import Navigator
+
+
+@dataclass(frozen=True)
+class SensorBelief:
+    """The noise the navigator assumes of the altimeter ((sigma_m, share) of the range, or a
+    fixed m) and of the velocimeter (m/s per axis)."""
+
+    altimeter_sigma: tuple[float, float] | float
+    velocimeter_sigma_m_s: float
+
+
+class FlightSoftware:
+    """The navigator and the guidance law between the world's sensors and its engine."""
+
+    def __init__(self, navigator: Navigator, law: GuidanceLaw, target: Target,
+                 vehicle: Vehicle, mass0_kg: float, dt_s: float, n_steps: int,
+                 sensors: SensorBelief, guidance_input: str = "navigator") -> None:
+        self.navigator, self.law, self.target = navigator, law, target
+        self.vehicle, self.mass_kg, self.dt_s = vehicle, mass0_kg, dt_s
+        self.sensors, self.guidance_input = sensors, guidance_input
+        self.imu = filter.ImuSamples(dt_s, np.zeros((n_steps, 3)), np.zeros((n_steps, 3)), 0.0)
+        self.thrust_cmd_n = 0.0
+
+    # --- sensors in ---------------------------------------------------------------------------
+
+    def imu_sample(self, k: int, dtheta_rad: np.ndarray, dv_m_s: np.ndarray) -> None:
+        """Sample k's increments (over [k dt, (k + 1) dt)); the mass booked for the thrust
+        commanded over it."""
+        self.imu.dtheta_rad[k] = dtheta_rad
+        self.imu.dv_m_s[k] = dv_m_s
+        burnt = self.vehicle.clamp_thrust_n(self.thrust_cmd_n) * self.dt_s / (
+            self.vehicle.isp_s * G0_M_S2)
+        self.mass_kg = max(self.mass_kg - burnt, self.vehicle.dry_mass_kg)
+
+    def propagate(self, t_s: float) -> None:
+        """The navigator predicted to t_s (s) on the IMU samples so far."""
+        self.navigator.coast(t_s, self.imu, [], np.zeros(0))
+
+    def altimeter(self, t_s: float, rho_m: float) -> None:
+        """A slant range (m) at the navigator's time (NaN: no return)."""
+        if math.isfinite(rho_m):
+            s = self.sensors.altimeter_sigma
+            sigma = s[0] + s[1] * rho_m if isinstance(s, tuple) else s
+            self.navigator.update([filter.AltimeterSample(t_s, rho_m, sigma)])
+
+    def velocimeter(self, t_s: float, v_body_m_s: np.ndarray | None) -> None:
+        if v_body_m_s is not None:
+            self.navigator.update([filter.VelocimeterSample(
+                t_s, v_body_m_s, self.sensors.velocimeter_sigma_m_s)])
+
+    # --- guidance out -------------------------------------------------------------------------
+
+    def estimate(self) -> NavState | None:
+        tr = self.navigator.tracker
+        return None if tr is None else tr.x
+
+    def command(self, t_s: float, truth: LanderState) -> ThrustCommand:
+        """The law's command for [t_s, t_s + 1 / guidance rate) from the navigated state (or the
+        truth); raises ValueError when the law cannot plan from it."""
+        x = self.estimate()
+        if self.guidance_input == "truth" or x is None:
+            state = NavigatedState(t_s, truth.r_mci_m, truth.v_mci_m_s, truth.q_mci_from_body,
+                                   truth.mass_kg if self.guidance_input == "truth"
+                                   else self.mass_kg)
+        else:
+            state = NavigatedState(t_s, x.r_mci_m, x.v_mci_m_s, x.q_mci_from_body,
+                                   self.mass_kg)
+        cmd = self.law.command(state, self.target)
+        self.thrust_cmd_n = cmd.thrust_n
+        return cmd
+
+    # --- what the navigation table records ----------------------------------------------------
+
+    def record(self, t_s: float) -> Record | None:
+        """The navigator at t_s with the counts and NIS of the updates since the last record
+        (None before it starts)."""
+        tr = self.navigator.tracker
+        if tr is None:
+            self.navigator.updates.clear()
+            return None
+        rec = Record(t_s, tr.x, tr.p.copy())
+        for u in self.navigator.updates:
+            for kind in {*u.used, *u.rejected}:
+                rec.count(kind, u.used.get(kind, 0), u.rejected.get(kind, 0))
+            if u.nis_dof:
+                rec.nis = (0.0 if not rec.nis_dof else rec.nis) + u.nis
+                rec.nis_dof += u.nis_dof
+        self.navigator.updates.clear()
+        return rec
+
+    def diverged(self) -> str | None:
+        """Why the navigator can no longer be flown on (non-finite, or a position 1-sigma above
+        100 km), or None."""
+        tr = self.navigator.tracker
+        if tr is None:
+            return None
+        if not (np.all(np.isfinite(tr.x.r_mci_m)) and np.all(np.isfinite(tr.p))):
+            return "the navigated state is not finite"
+        if float(np.sqrt(np.max(np.diag(tr.p)[:3]))) > 1e5:
+            return "the navigator's position 1-sigma exceeds 100 km"
+        return None

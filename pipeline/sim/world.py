@@ -1,0 +1,160 @@
+"""The world of the closed loop: the lander's true state, stepped under the flight software's
+commands (`pipeline.core.dynamics.powered`), its surface, and the sensors that sample it as it
+is flown: the IMU (increments of the motion flown, with its errors), the camera (the crater
+sensor model), the laser altimeter (slant range along its beam to the surface) and a Doppler
+velocimeter (the velocity relative to the ground). The world never reads the flight software.
+
+Random draws: the IMU's turn-on errors, bias histories and white noise are drawn at the start
+for the longest flight (stream "imu"), so sample k's errors do not depend on when the flight
+ends; the altimeter's and velocimeter's noise come from their own streams, sample after sample.
+Frames: MCI (m, m/s), MCMF = Rz(-rate t) MCI, body axes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.core.body.surface import Surface
+from pipeline.core.dynamics.powered import LanderState, Step, Vehicle, find_contact, step
+from pipeline.core.math.constants import MOON_ROTATION_RATE_RAD_S
+from pipeline.core.math.frames import dcm_mci_from_mcmf
+from pipeline.core.math.rotations import dcm_from_q
+from pipeline.core.math.streams import stream
+from pipeline.core.sensors import imu
+
+MAX_RELIEF_M = 12_000.0  # above the reference sphere: no contact possible (LOLA: -9.1..10.8 km)
+MOON_RATE_MCI = np.array([0.0, 0.0, MOON_ROTATION_RATE_RAD_S])
+
+
+@dataclass(frozen=True)
+class AltimeterTruth:
+    """The laser altimeter: noise 1-sigma sigma_m + sigma_share * range (m), no return beyond
+    max_range_m or in a dropout; a bias step during a bias fault; its beam in body axes."""
+
+    enabled: bool
+    sigma_m: float
+    sigma_share: float
+    max_range_m: float
+    beam_body: np.ndarray
+    fault: str  # none | bias | dropout
+    fault_start_s: float
+    fault_end_s: float
+    fault_bias_m: float
+
+
+@dataclass(frozen=True)
+class VelocimeterTruth:
+    """The Doppler velocimeter: noise 1-sigma per axis (m/s), measuring below max_altitude_m."""
+
+    enabled: bool
+    sigma_m_s: float
+    max_altitude_m: float
+
+
+class World:
+    """The truth of one flight (module docstring): `step` flies one dt under a command and
+    returns the IMU's measured increments; the sensors sample the state reached."""
+
+    def __init__(self, vehicle: Vehicle, state0: LanderState, surface: Surface, gravity: str,
+                 dt_s: float, n_steps: int, grade: imu.ImuGrade, altimeter: AltimeterTruth,
+                 velocimeter: VelocimeterTruth, seed: int) -> None:
+        self.vehicle, self.surface, self.gravity, self.dt_s = vehicle, surface, gravity, dt_s
+        self.state = self.previous = state0
+        self.k = 0
+        self.n_steps = n_steps
+        self.grade, self.altimeter_truth, self.velocimeter_truth = grade, altimeter, velocimeter
+        rng = stream(seed, "imu")
+        self.gyro = imu.draw_triad(rng, grade.gyro, n_steps, dt_s)
+        self.accel = imu.draw_triad(rng, grade.accel, n_steps, dt_s)
+        root = math.sqrt(dt_s)
+        self.gyro_white = grade.gyro.random_walk * root * rng.standard_normal((n_steps, 3))
+        self.accel_white = grade.accel.random_walk * root * rng.standard_normal((n_steps, 3))
+        self.altimeter_rng = stream(seed, "altimeter")
+        self.velocimeter_rng = stream(seed, "velocimeter")
+        self.last: Step | None = None
+        self.t_out_of_fuel_s = math.nan
+
+    # --- dynamics ---------------------------------------------------------------------------
+
+    def step(self, thrust_cmd_n: float, q_mci_from_body_cmd: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """Fly one step; the IMU's measured delta-theta (rad) and delta-v (m/s), body axes:
+        (I + S + M) true + b dt + random walk (`pipeline.core.sensors.imu`)."""
+        k = self.k
+        if k >= self.n_steps:
+            raise ValueError(f"the world was drawn for {self.n_steps} steps")
+        s = step(self.vehicle, self.state, thrust_cmd_n, q_mci_from_body_cmd, self.dt_s,
+                 gravity=self.gravity)
+        self.previous, self.state, self.last = self.state, s.state, s
+        if math.isnan(self.t_out_of_fuel_s) and s.state.mass_kg <= self.vehicle.dry_mass_kg:
+            self.t_out_of_fuel_s = s.state.t_s
+        self.k += 1
+        dtheta = (s.dtheta_body_rad @ self.gyro.matrix.T + self.gyro.bias[k] * self.dt_s
+                  + self.gyro_white[k])
+        dv = (s.dv_body_m_s @ self.accel.matrix.T + self.accel.bias[k] * self.dt_s
+              + self.accel_white[k])
+        return dtheta, dv
+
+    def contact(self) -> LanderState | None:
+        """The touchdown state inside the last step (None without contact)."""
+        r = self.state.r_mci_m
+        if float(r @ r) > (self.surface.reference_radius_m + MAX_RELIEF_M) ** 2:
+            return None
+        if float(self.surface.altitude_m(self.r_mcmf_m())) > 0.0:
+            return None
+        found = find_contact(self.previous, self.state, self.surface.altitude_m,
+                             rotation_rate_rad_s=MOON_ROTATION_RATE_RAD_S)
+        return found if found is not None else self.previous
+
+    # --- where the lander is ----------------------------------------------------------------
+
+    def theta_rad(self) -> float:
+        return MOON_ROTATION_RATE_RAD_S * self.state.t_s
+
+    def r_mcmf_m(self) -> np.ndarray:
+        return dcm_mci_from_mcmf(np.asarray(self.theta_rad())).T @ self.state.r_mci_m
+
+    def dcm_body_from_mcmf(self) -> np.ndarray:
+        return (dcm_mci_from_mcmf(np.asarray(self.theta_rad())).T
+                @ dcm_from_q(self.state.q_mci_from_body)).T
+
+    def true_biases(self) -> tuple[np.ndarray, np.ndarray]:
+        """The gyro (rad/s) and accelerometer (m/s^2) biases of the sample in progress."""
+        k = min(self.k, self.n_steps - 1)
+        return self.gyro.bias[k], self.accel.bias[k]
+
+    def altitude_m(self) -> float:
+        """The lander's height above the surface below it (m)."""
+        return float(self.surface.altitude_m(self.r_mcmf_m()))
+
+    # --- the other sensors ------------------------------------------------------------------
+
+    def altimeter(self) -> tuple[float, float]:
+        """(measured, true) slant range (m) along the beam to the surface; measured NaN without
+        a return."""
+        a = self.altimeter_truth
+        to_mci = dcm_mci_from_mcmf(np.asarray(self.theta_rad()))
+        beam = to_mci.T @ (dcm_from_q(self.state.q_mci_from_body) @ a.beam_body)
+        true = float(self.surface.intersect(self.r_mcmf_m(), beam))
+        noise = float(self.altimeter_rng.standard_normal())
+        t = self.state.t_s
+        in_fault = a.fault != "none" and a.fault_start_s <= t < a.fault_end_s
+        if not (a.enabled and math.isfinite(true) and true <= a.max_range_m) or (
+                in_fault and a.fault == "dropout"):
+            return math.nan, true
+        rho = true + (a.sigma_m + a.sigma_share * true) * noise
+        return (rho + a.fault_bias_m if in_fault and a.fault == "bias" else rho), true
+
+    def velocimeter(self) -> np.ndarray | None:
+        """The measured velocity relative to the ground (m/s, body axes), or None above the
+        velocimeter's range."""
+        v = self.velocimeter_truth
+        noise = self.velocimeter_rng.standard_normal(3)
+        if not v.enabled or self.altitude_m() > v.max_altitude_m:
+            return None
+        s = self.state
+        v_rel = s.v_mci_m_s - np.cross(MOON_RATE_MCI, s.r_mci_m)
+        return dcm_from_q(s.q_mci_from_body).T @ v_rel + v.sigma_m_s * noise

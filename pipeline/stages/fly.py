@@ -1,0 +1,199 @@
+"""Stage `fly`: the closed loop. Guidance flies the lander from its descent orbit to the site on
+the navigator's estimate, the world's sensors sampling the flight as it is flown
+(`pipeline.ops.fly`, `pipeline.sim`). It runs instead of trajectory, imu, detect and navigate
+(`flight.closed_loop = true`) and writes their tables (trajectory, IMU, detections and frames,
+navigation), the guidance's (guidance.parquet) and the touchdown's (touchdown.parquet, the same
+row as touchdown.json); `estimate` and `score` read them as they read the open loop's.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+from pipeline.config import RunConfig
+from pipeline.core.body.surface import Sphere
+from pipeline.core.guidance import ApolloOptions
+from pipeline.core.guidance.fly import TouchdownLimits
+from pipeline.core.sensors.detection import CraterArrays
+from pipeline.core.vision.index_cache import IndexCache
+from pipeline.engine.progress import progress_bar
+from pipeline.engine.stage import Stage, StageContext, StageResult
+from pipeline.errors import StageInputError
+from pipeline.io import ephemeris
+from pipeline.io.catalogue import check_catalogue_unchanged, load_recorded_catalogue
+from pipeline.io.pair_index import PairIndexStore
+from pipeline.ops import flight_tables as tables
+from pipeline.ops.detect import model_of
+from pipeline.ops.detect import tables as detection_tables
+from pipeline.ops.fly import FlyOptions, SiteOptions, run_flight
+from pipeline.ops.identify import frame_columns
+from pipeline.ops.navigate import navigation_table
+from pipeline.sim.flight_software import SensorBelief
+from pipeline.sim.loop import Rates
+from pipeline.sim.world import AltimeterTruth, VelocimeterTruth
+from pipeline.stages.detect import identify_options
+from pipeline.stages.navigate import options as navigate_options
+from pipeline.viz.draw.fly import record_fly
+from pipeline.workspace import workspace
+
+
+def options(cfg: RunConfig) -> FlyOptions:
+    """The closed loop's options of a run."""
+    f, a, v, d = cfg.flight, cfg.altimeter, cfg.velocimeter, cfg.detection
+    nav = navigate_options(cfg)
+    steps = f.dynamics_rate_hz
+
+    def every(rate_hz: float) -> int:
+        return round(steps / rate_hz)
+
+    return FlyOptions(
+        site=SiteOptions(f.site_lat_deg, f.site_lon_deg, f.approach_heading_deg,
+                         f.pdi_range_km * 1e3, f.coast_s, f.periapsis_alt_km * 1e3,
+                         f.apoapsis_alt_km * 1e3),
+        vehicle=f.vehicle_model(believed=False), vehicle_belief=f.vehicle_model(believed=True),
+        world_gravity=f.gravity, surface=Sphere(), imu=cfg.imu.model(),
+        altimeter=AltimeterTruth(a.enabled, a.sigma_m, a.sigma_share, a.max_range_km * 1e3,
+                                 a.beam_body(), a.fault, a.fault_start_s, a.fault_end_s,
+                                 a.fault_bias_m),
+        velocimeter=VelocimeterTruth(v.enabled, v.sigma_m_s, v.max_range_km * 1e3),
+        model=model_of(d), false_detection_share=d.false_detection_share, navigate=nav,
+        identify=identify_options(cfg) if d.sensor == "physical" else None,
+        crater_updates=cfg.navigation.crater_updates == "tight",
+        sensors=SensorBelief(nav.altimeter_sigma, v.sigma_m_s if v.assumed_sigma_m_s is None
+                             else v.assumed_sigma_m_s),
+        guidance=ApolloOptions(high_gate_alt_m=f.high_gate_alt_m,
+                               high_gate_range_m=f.high_gate_range_m, approach_s=f.approach_s,
+                               gravity=cfg.navigation.gravity),
+        guidance_input=f.guidance_input, target_descent_rate_m_s=f.descent_rate_m_s,
+        target_low_gate_alt_m=f.low_gate_alt_m,
+        rates=Rates(1.0 / steps, f.steps_per_guidance, every(cfg.trajectory.frame_rate_hz),
+                    every(a.rate_hz), every(v.rate_hz), every(cfg.imu.record_rate_hz),
+                    math.ceil(f.max_duration_s * steps)),
+        limits=TouchdownLimits(f.max_vertical_speed_m_s, f.max_horizontal_speed_m_s,
+                               f.max_tilt_deg))
+
+
+def _indexes(cfg: RunConfig, craters: CraterArrays, key: str) -> IndexCache:
+    index_dir = workspace().resolve(cfg.identification.index_dir)
+    try:
+        index_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StageInputError(f"identification.index_dir = {cfg.identification.index_dir!r}: "
+                              f"cannot keep the lost-in-space indexes there ({exc.strerror})"
+                              ) from None
+    return IndexCache(craters, PairIndexStore(index_dir, key),
+                      cfg.detection.detect_min_diameter_px)
+
+
+def run(ctx: StageContext) -> StageResult:
+    cfg, tx = ctx.cfg, ctx.tx
+    o = options(cfg)
+    craters = load_recorded_catalogue(ctx.input("catalogue.json"))
+    sun = None
+    indexes = None
+    frame_rate = cfg.trajectory.frame_rate_hz
+    if o.identify is not None:
+        epoch = cfg.trajectory.epoch_utc
+        assert epoch is not None  # the physical sensor needs one (config checks it)
+        t_frames = np.arange(math.floor(cfg.flight.max_duration_s * frame_rate) + 2) / frame_rate
+        sun_table = ephemeris.sun_mcmf_m(epoch, t_frames)
+        sun = lambda t_s: sun_table[round(t_s * frame_rate)]  # noqa: E731
+        indexes = _indexes(cfg, craters, craters.meta["key"])
+    with progress_bar("flying the closed loop (s of flight)",
+                      round(cfg.flight.max_duration_s)) as advance:
+        done = [0]
+
+        def tick(t_s: float) -> None:
+            while done[0] < int(t_s):
+                done[0] += 1
+                advance()
+
+        rec, _, x0, target, orbit = run_flight(o, craters, craters, indexes, sun,
+                                                   cfg.seed, tick)
+    dt = o.rates.dt_s
+    trajectory = tables.trajectory_table(rec)
+    imu, truth = tables.imu_tables(rec, dt)
+    frames_sun = None if sun is None else np.array([sun(s.t_s) for s in rec.frames])
+    detections, frames_table = detection_tables(o.model, craters, trajectory,
+                                                [s.detections for s in rec.frames], frames_sun)
+    if o.identify is not None:
+        per_det, per_frame = frame_columns([s.result for s in rec.frames if s.result])
+        detections = detections.with_columns(**per_det)
+        frames_table = frames_table.with_columns(**per_frame)
+    frame_of_time = {float(t): int(f) for t, f in zip(trajectory["t_s"].to_list(),
+                                                      trajectory["frame"].to_list(), strict=True)}
+    navigation = navigation_table(tables.navigation_records(rec), truth,
+                                  tables.dead_reckoning(rec, x0, dt, cfg.navigation.gravity),
+                                  frame_of_time, False,
+                                  cfg.estimation.consistency_probability)
+    t_end = rec.contact.t_s if rec.contact is not None else rec.record_t_s[-1]
+    facts = {"t_pdi_s": orbit.t_pdi_s, "t_overhead_s": orbit.t_overhead_s,
+             "vehicle": o.vehicle.name, "steps": rec.steps, "site_lat_deg": o.site.lat_deg,
+             "site_lon_deg": o.site.lon_deg,
+             "site_radius_m": float(np.linalg.norm(target.r_mcmf_m))}
+    touchdown = tables.touchdown_table(rec, target, o.site.heading_deg, o.vehicle, o.surface,
+                                       facts)
+    tx.table("trajectory", trajectory)
+    tx.output("trajectory.json").write_text(json.dumps({
+        "t_impact_s": t_end, "frames": trajectory.height, "closed_loop": True,
+        "status": rec.status, **facts}, indent=2) + "\n")
+    tx.table("imu", imu)
+    tx.table("imu_truth", truth)
+    tx.table("altimeter", tables.altimeter_table(rec, (cfg.altimeter.fault,
+                                                       cfg.altimeter.fault_start_s,
+                                                       cfg.altimeter.fault_end_s)))
+    tx.output("imu.json").write_text(json.dumps({
+        "imu_samples": imu.height, "imu_rate_hz": cfg.flight.dynamics_rate_hz,
+        "grade": cfg.imu.grade, "altimeter_samples": len(rec.altimeter)}, indent=2) + "\n")
+    tx.table("detections", detections)
+    tx.table("frames", frames_table)
+    tx.table("navigation", navigation)
+    tx.output("navigation.json").write_text(json.dumps({"t_start_s": 0.0}, indent=2) + "\n")
+    tx.table("guidance", tables.guidance_table(rec, o.vehicle, o.surface))
+    tx.table("touchdown", touchdown)
+    row = touchdown.row(0, named=True)
+    tx.output("touchdown.json").write_text(json.dumps(row, indent=2, default=float) + "\n")
+    folder = ctx.store.stage_dir("fly")
+    return StageResult(info={"status": rec.status, "miss_m": row["miss_m"]}, summary=(
+        f"flew {t_end:.1f} s ({rec.steps:,} steps): {rec.status}"
+        + (f" ({rec.reason})" if rec.reason else "")
+        + (f"; missed the site by {row['miss_m']:.2f} m (knowledge error "
+           f"{row['knowledge_error_m']:.2f} m, flight-technical {row['fte_m']:.2f} m), "
+           f"touchdown {row['vertical_speed_m_s']:.2f} m/s down, "
+           f"{row['horizontal_speed_m_s']:.2f} m/s across, "
+           f"{row['propellant_left_kg']:.1f} kg of propellant left"
+           if rec.contact is not None else ""),
+        f"wrote {folder / 'touchdown.parquet'}, guidance.parquet, trajectory.parquet, imu.parquet,"
+        " imu_truth.parquet, altimeter.parquet, detections.parquet, frames.parquet, "
+        "navigation.parquet",
+        f"ask it: just sql --run {ctx.store.run_id} \"SELECT status, miss_m, knowledge_error_m, "
+        "fte_m, vertical_speed_m_s FROM touchdown\"",
+        f"look at it: rerun {folder / 'flight.rrd'}"))
+
+
+def closed_loop(cfg: RunConfig) -> bool:
+    return cfg.flight.closed_loop
+
+
+STAGE = Stage(
+    name="fly",
+    doc="the closed loop: guidance flies the lander to the site on the navigator's estimate",
+    reads=("flight", "velocimeter", "trajectory.frame_rate_hz", "trajectory.epoch_utc",
+           "detection", "identification", "navigation", "estimation", "imu", "altimeter",
+           "seed"),
+    inputs=("catalogue.json",),
+    outputs=("trajectory.parquet", "trajectory.json", "imu.parquet", "imu_truth.parquet",
+             "altimeter.parquet", "imu.json", "detections.parquet", "frames.parquet",
+             "navigation.parquet", "navigation.json", "guidance.parquet", "touchdown.parquet",
+             "touchdown.json"),
+    code=("pipeline.stages.fly",),
+    run=run,
+    visuals=("trajectory.rrd", "imu.rrd", "detection.rrd", "navigation.rrd", "flight.rrd"),
+    record=record_fly,
+    visual_code=("pipeline.viz.draw.fly",),
+    active=closed_loop,
+    verify=lambda ctx: check_catalogue_unchanged(ctx.input("catalogue.json")),
+)
