@@ -14,6 +14,9 @@ from pipeline.config.checks import (
     _num,
 )
 from pipeline.core.body import synthetic
+from pipeline.core.math.constants import MOON_RADIUS_M
+
+MAX_SITE_TIER_CRATERS = 5_000_000  # ~0.5 GB in memory with the tile index
 
 
 @dataclass(frozen=True)
@@ -28,6 +31,14 @@ class CatalogueConfig:
     synthetic_min_diam_km: float
     synthetic_max_diam_km: float
     seed: int  # seed of the synthetic generator
+    site_tier: bool  # add a tier of small craters along the approach to flight's site
+    site_uprange_km: float  # the tier's corridor: from this far before the site...
+    site_downrange_km: float  # ...to this far past it
+    site_min_diam_m: float  # its smallest craters at the site...
+    site_min_diam_growth_m_per_km: float  # ...growing by this per km from the site
+    site_half_width_km: float  # the corridor's half width at the site...
+    site_width_share: float  # ...and as a share of the distance from it
+    site_seed: int  # the tier's generator seed
 
     def __post_init__(self) -> None:
         for key in ("source", "format", "db_path"):
@@ -47,6 +58,21 @@ class CatalogueConfig:
                "catalogue.synthetic_min_diam_km",
                f"need 0 < synthetic_min_diam_km ({self.synthetic_min_diam_km:g}) < "
                f"synthetic_max_diam_km ({self.synthetic_max_diam_km:g})")
+        k = "catalogue."
+        _num(self.site_uprange_km, k + "site_uprange_km", 0.0, 3_000.0, unit="km")
+        _num(self.site_downrange_km, k + "site_downrange_km", 0.0, 1_000.0, unit="km")
+        _num(self.site_min_diam_m, k + "site_min_diam_m", 0.5, 1_000.0, unit="m")
+        _num(self.site_min_diam_growth_m_per_km, k + "site_min_diam_growth_m_per_km", 0.0,
+             100.0, unit="m/km")
+        _num(self.site_half_width_km, k + "site_half_width_km", 0.01, 500.0, unit="km")
+        _num(self.site_width_share, k + "site_width_share", 0.0, 1.0)
+        _num(self.site_seed, k + "site_seed", 0, MAX_SEED)
+        if self.site_tier:
+            n = self.site_tier_count()
+            _check(n <= MAX_SITE_TIER_CRATERS, k + "site_min_diam_m",
+                   f"= {self.site_min_diam_m:g} m makes ~{n:.3g} site-tier craters, above the "
+                   f"limit of {MAX_SITE_TIER_CRATERS:,}: raise it or the growth, or narrow the "
+                   "corridor")
         if self.source == "synthetic":
             n = self.synthetic_count()
             _check(n <= MAX_SYNTHETIC_CRATERS, "catalogue.synthetic_min_diam_km",
@@ -56,6 +82,13 @@ class CatalogueConfig:
             _check(n >= 0.5, "catalogue.synthetic_min_diam_km",
                    f"{self.synthetic_min_diam_km:g}-{self.synthetic_max_diam_km:g} km holds "
                    f"~{n:.2g} synthetic craters: the catalogue would be empty")
+
+    def site_tier_count(self) -> float:
+        """Expected number of site-tier craters (the generator's law)."""
+        return synthetic.site_tier_count(
+            self.site_uprange_km * 1e3, self.site_downrange_km * 1e3, self.site_min_diam_m,
+            self.site_min_diam_growth_m_per_km / 1e3, self.site_half_width_km * 1e3,
+            self.site_width_share, 1.0, MOON_RADIUS_M)
 
     def synthetic_count(self) -> float:
         """Expected number of synthetic craters between the two diameters (the generator's law)."""

@@ -57,6 +57,9 @@ class DetectionConfig:
     catalogue_sigma_horizontal_m: float  # the world minus the catalogue, 1-sigma per axis
     catalogue_sigma_height_m: float
     catalogue_sigma_diameter_share: float
+    site_map_sigma_horizontal_m: float  # the site tier's common offset (absolute error), per axis
+    site_map_sigma_height_m: float  # ...vertical
+    site_map_relative_sigma_m: float  # each site-tier crater's own error, per axis
     world_seed: int  # the catalogue errors' seed (the world is fixed: shared by every run)
     false_detection_share: float  # physical: extra random ellipses, a share of the true ones
     source: str  # model (the sensor's detection model) | pixels (the detector on rendered images)
@@ -112,6 +115,9 @@ class DetectionConfig:
              unit="m")
         _num(self.catalogue_sigma_height_m, k + "catalogue_sigma_height_m", 0.0, 1e5, unit="m")
         _num(self.catalogue_sigma_diameter_share, k + "catalogue_sigma_diameter_share", 0.0, 0.5)
+        for name in ("site_map_sigma_horizontal_m", "site_map_sigma_height_m",
+                     "site_map_relative_sigma_m"):
+            _num(getattr(self, name), k + name, 0.0, 1e4, unit="m")
         _num(self.world_seed, k + "world_seed", 0, MAX_SEED)
         _num(self.false_detection_share, k + "false_detection_share", 0.0, 10.0)
         if self.sensor == "paper":

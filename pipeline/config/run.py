@@ -181,7 +181,8 @@ class RunConfig:
                     else e.assumed_pixel_sigma_px)
         catalogue = (sensor.CatalogueErrors(d.catalogue_sigma_horizontal_m,
                                             d.catalogue_sigma_height_m,
-                                            d.catalogue_sigma_diameter_share)
+                                            d.catalogue_sigma_diameter_share,
+                                            site_relative_m=d.site_map_relative_sigma_m)
                      if e.catalogue_sigmas == "truth" else none)
         return sensor.SensorNoise(sigma_px, d.pixel_camera().fx_px, d.range_source,
                                   self.navigator_sigmas()[1], catalogue)

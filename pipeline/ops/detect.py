@@ -34,7 +34,10 @@ def physical_sensor(d: DetectionConfig) -> PhysicalSensor:
         range_source=d.range_source,
         catalogue_errors=sensor.CatalogueErrors(d.catalogue_sigma_horizontal_m,
                                                 d.catalogue_sigma_height_m,
-                                                d.catalogue_sigma_diameter_share),
+                                                d.catalogue_sigma_diameter_share,
+                                                d.site_map_sigma_horizontal_m,
+                                                d.site_map_sigma_height_m,
+                                                d.site_map_relative_sigma_m),
         world_seed=d.world_seed)
 
 

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
+from pipeline.core.body.synthetic import SITE_TIER_ID_BASE
 from pipeline.core.estimation.estimators import (
     CheckOptions,
     PoseEstimate,
@@ -70,7 +71,8 @@ class UsedCraters:
             return scalar
         rho = np.where(np.isfinite(self.rho_m[a:b]), self.rho_m[a:b], self.rho_size_m[a:b])
         return measurement_sigmas(noise, rho, self.semi_major_px[a:b],
-                                  None if sightings is None else sightings[a:b])
+                                  None if sightings is None else sightings[a:b],
+                                  self.matched_id[a:b] >= SITE_TIER_ID_BASE)
 
     def sightings(self) -> np.ndarray:
         """Per row (N,): in how many frames its catalogue crater is used over the run."""

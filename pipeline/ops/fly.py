@@ -140,7 +140,7 @@ def run_flight(o: FlyOptions, craters: CraterArrays, navigator_craters: CraterAr
     else:
         camera = PaperCamera(o.model, craters, seed, o.crater_updates)
     navigator = Navigator(o.navigate.filter, Tracker(x0, p0, 0.0), ident, seed,
-                          crater_updates=o.crater_updates)
+                          crater_updates=o.crater_updates, count_sightings=True)
     law = ApolloGuidance(replace(o.guidance, ignition_t_s=orbit.t_pdi_s), o.vehicle_belief)
     fsw = FlightSoftware(navigator, law, target, o.vehicle_belief, o.vehicle_belief.wet_mass_kg,
                          o.rates.dt_s, o.rates.max_steps, o.sensors, o.guidance_input)

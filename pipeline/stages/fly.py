@@ -95,12 +95,12 @@ def run(ctx: StageContext) -> StageResult:
     sun = None
     indexes = None
     frame_rate = cfg.trajectory.frame_rate_hz
-    if o.identify is not None:
-        epoch = cfg.trajectory.epoch_utc
-        assert epoch is not None  # the physical sensor needs one (config checks it)
+    epoch = cfg.trajectory.epoch_utc
+    if epoch is not None:  # the Sun at every frame the flight can have
         t_frames = np.arange(math.floor(cfg.flight.max_duration_s * frame_rate) + 2) / frame_rate
         sun_table = ephemeris.sun_mcmf_m(epoch, t_frames)
         sun = lambda t_s: sun_table[round(t_s * frame_rate)]  # noqa: E731
+    if o.identify is not None:
         indexes = _indexes(cfg, craters, craters.meta["key"])
     with progress_bar("flying the closed loop (s of flight)",
                       round(cfg.flight.max_duration_s)) as advance:

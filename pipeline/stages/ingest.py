@@ -47,7 +47,35 @@ def catalogue_key(cfg: RunConfig) -> str:
     f = source_fingerprint(cfg)
     return config_hash("catalogue", c.source, c.format, c.healpix_order, c.max_reject_share,
                        c.synthetic_min_diam_km, c.synthetic_max_diam_km, c.seed, f["sha256"],
-                       f["format_sha256"], code_hash(CATALOGUE_CODE))
+                       f["format_sha256"], code_hash(CATALOGUE_CODE), *_tier_key(cfg))
+
+
+SITE_READS = ("flight.site_lat_deg", "flight.site_lon_deg", "flight.approach_heading_deg")
+
+
+def site_reads(cfg: RunConfig) -> tuple[str, ...]:
+    """What the site tier reads of the flight (its site and heading); nothing without one."""
+    return SITE_READS if cfg.catalogue.site_tier else ()
+
+
+def _tier_key(cfg: RunConfig) -> tuple:
+    """The site tier's part of the catalogue key (empty without one: the key stays as it was)."""
+    c = cfg.catalogue
+    if not c.site_tier:
+        return ()
+    f = cfg.flight
+    return ("site_tier", c.site_uprange_km, c.site_downrange_km, c.site_min_diam_m,
+            c.site_min_diam_growth_m_per_km, c.site_half_width_km, c.site_width_share,
+            c.site_seed, f.site_lat_deg, f.site_lon_deg, f.approach_heading_deg)
+
+
+def tier_table(cfg: RunConfig):
+    """The site tier's rows (`pipeline.core.body.synthetic.site_tier`), or None."""
+    c = cfg.catalogue
+    if not c.site_tier:
+        return None
+    f = cfg.flight
+    return cat.site_tier_table(c, f.site_lat_deg, f.site_lon_deg, f.approach_heading_deg)
 
 
 def database_current(cfg: RunConfig, _key: str = "") -> bool:
@@ -60,7 +88,8 @@ def build(cfg: RunConfig, key: str) -> dict[str, Any]:
     """Read the source once, validate, position and tile it; write the database atomically.
     Returns the meta row."""
     return cat.build_from_config(cfg.catalogue, key,
-                                 expected_sha256=source_fingerprint(cfg)["sha256"])
+                                 expected_sha256=source_fingerprint(cfg)["sha256"],
+                                 extra=tier_table(cfg))
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -91,7 +120,9 @@ def run(ctx: StageContext) -> StageResult:
             f"{verb} {path} ({meta['format']}: {meta['rows_kept']:,} craters kept, "
             f"{meta['rows_rejected']:,} rejected of {meta['rows_read']:,} read, "
             f"{meta.get('rows_duplicate') or 0:,} positional duplicates reported, "
-            f"HEALPix order {meta['healpix_order']})",
+            f"HEALPix order {meta['healpix_order']}"
+            + (f"; {meta['rows_site_tier']:,} of them the site tier"
+               if meta.get("rows_site_tier") else "") + ")",
             f"query it: just sql --db {cfg.catalogue.db_path} \"SELECT count(*) FROM craters\"",
             f"look at it: rerun {rrd}",
         ),
@@ -102,6 +133,7 @@ STAGE = Stage(
     name="ingest",
     doc="crater catalogue into the tiled DuckDB database",
     reads=("catalogue",),
+    reads_when=site_reads,
     inputs=(),
     outputs=("catalogue.json",),
     code=("pipeline.stages.ingest",),

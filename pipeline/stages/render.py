@@ -124,7 +124,8 @@ STAGE = Stage(
     reads=("render", *(f"detection.{k}" for k in (
         "sensor", "fov_deg", "fov_convention", "image_size_px", "distortion",
         "camera_mounting_deg", "detect_min_diameter_px", "catalogue_sigma_horizontal_m",
-        "catalogue_sigma_height_m", "catalogue_sigma_diameter_share", "world_seed")),
+        "catalogue_sigma_height_m", "catalogue_sigma_diameter_share", "site_map_sigma_horizontal_m",
+        "site_map_sigma_height_m", "site_map_relative_sigma_m", "world_seed")),
            "trajectory.epoch_utc", "seed"),
     inputs=("catalogue.json", "trajectory.parquet"),
     outputs=("pixel_detections.parquet", "rendered_craters.parquet", "images.parquet",

@@ -29,10 +29,11 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from pipeline.core.body.synthetic import SITE_TIER_ID_BASE
 from pipeline.core.math import frames, rotations
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.math.streams import stream
@@ -47,6 +48,7 @@ from pipeline.core.sensors.detection import (
     ranges,
 )
 from pipeline.core.sensors.rim_sensing import Sensed, Sensing
+from pipeline.core.sensors.rim_sensor import catalogue_sigmas
 from pipeline.core.vision.identification import select_used
 from pipeline.core.vision.identify import (
     TRACK_MIN_MATCHES,
@@ -105,7 +107,7 @@ class Navigator:
 
     def __init__(self, filter_opts: filter.FilterOptions, start: Tracker | None,
                  identification: Identification | None = None, seed: int = 0,
-                 crater_updates: bool = True) -> None:
+                 crater_updates: bool = True, count_sightings: bool = False) -> None:
         self.filter_opts = filter_opts
         self.identification = identification
         self.tracker = start
@@ -114,6 +116,10 @@ class Navigator:
         self.rough_offset = (np.zeros(3) if identification is None else
                              _rough_offset(seed, identification.opts.rough_position_error_m))
         self.updates: list[filter.Record] = []  # every update's record, for its counts and NIS
+        # how often each crater has updated the filter (count_sightings): a catalogue error is
+        # the same at every sighting, so the K-th counts its variance K times (causal)
+        self.count_sightings = count_sightings
+        self.sightings: dict[int, int] = {}
 
     def coast(self, t_s: float, imu: filter.ImuSamples,
               altimeter: list[filter.AltimeterSample], alt_times: np.ndarray) -> None:
@@ -195,6 +201,8 @@ class Navigator:
                 tracker = _restart(tracker, result, t_s, v_rough_mci_m_s, opts.restart_sigma)
                 self.failures = 0
             elif mode == "tracking" and tracker is not None and identified.any():
+                if self.count_sightings:
+                    result = self._with_sightings(result, identified, tracker.x.r_mci_m)
                 tracker, rec = _update(tracker, result, identified, frame, self.filter_opts)
                 self.updates.append(rec)
         self.tracker = tracker
@@ -220,6 +228,26 @@ class Navigator:
             corners_mcmf_m=s.corners_mcmf_m, physical=columns)
         return FrameResult(det, mode, confidence, s.truth_row < 0, ok, elapsed_ms, index_ms,
                            float(sigma_px))
+
+
+    def _with_sightings(self, m: Match, k: np.ndarray, r_mci_m: np.ndarray) -> Match:
+        """The match with its identified craters' noise grown by their earlier sightings: the
+        catalogue's variance counted K times at the K-th (`rim_sensor.measurement_sigmas`)."""
+        ident = self.identification
+        assert ident is not None
+        rows = np.flatnonzero(k)
+        ids = ident.craters.crater_id[m.matched_row[rows]]
+        counts = np.array([self.sightings.get(int(i), 0) + 1 for i in ids])
+        for i, c in zip(ids.tolist(), counts.tolist(), strict=True):
+            self.sightings[i] = c
+        rho = np.linalg.norm(m.c_mci_m[rows] - r_mci_m, axis=1)
+        site = ids >= SITE_TIER_ID_BASE
+        cat_h, cat_r = catalogue_sigmas(ident.opts.sensor_noise, rho, site)
+        extra = counts - 1.0
+        sigma_b, sigma_r = m.sigma_bearing.copy(), m.sigma_range_m.copy()
+        sigma_b[rows] = np.sqrt(sigma_b[rows] ** 2 + extra * (cat_h / rho) ** 2)
+        sigma_r[rows] = np.sqrt(sigma_r[rows] ** 2 + extra * np.asarray(cat_r) ** 2)
+        return replace(m, sigma_bearing=sigma_b, sigma_range_m=sigma_r)
 
 
 def identify_frames(model: DetectionModel, opts: IdentifyOptions, craters: CraterArrays,

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.core.body.synthetic import SITE_TIER_ID_BASE
 from pipeline.core.sensors import conics
 from pipeline.core.sensors.camera import PixelCamera
 
@@ -53,11 +54,21 @@ def crater_normals(seed: int, crater_id: np.ndarray, n: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CatalogueErrors:
-    """1-sigma differences between the world and the catalogue."""
+    """1-sigma differences between the world and the catalogue; the site tier's craters
+    (numbered from `SITE_TIER_ID_BASE`) have a flight map's errors instead: a common offset of
+    the whole tier (its absolute error) and per-crater relative errors."""
 
     horizontal_m: float  # per horizontal axis of the crater centre
     height_m: float  # of the centre off the reference sphere
     diameter_share: float  # relative diameter error
+    site_horizontal_m: float = 0.0  # the tier's common offset, per horizontal axis
+    site_height_m: float = 0.0  # the tier's common offset, vertical
+    site_relative_m: float = 0.0  # each tier crater's own error, per axis
+
+    @property
+    def zero(self) -> bool:
+        return (self.horizontal_m == self.height_m == self.diameter_share == 0.0
+                and self.site_horizontal_m == self.site_height_m == self.site_relative_m == 0.0)
 
 
 @dataclass(frozen=True)
@@ -72,16 +83,28 @@ class World:
 def world_craters(c_cat_m: np.ndarray, diam_cat_m: np.ndarray, crater_id: np.ndarray,
                   errors: CatalogueErrors, seed: int) -> World:
     """The true craters of catalogue entries (centres (N, 3) m, Moon-centred; diameters (N,) m):
-    each entry plus its fixed, seeded error (east/north horizontal, up, relative diameter). The
-    catalogue itself when every error is zero."""
-    if errors.horizontal_m == errors.height_m == errors.diameter_share == 0.0:
+    each entry plus its fixed, seeded error (east/north horizontal, up, relative diameter); the
+    site tier's entries plus the tier's common offset (one seeded draw) and their own relative
+    error. The catalogue itself when every error is zero."""
+    if errors.zero:
         return World(c_cat_m, diam_cat_m)
     z = crater_normals(seed, crater_id, 4)
     up = c_cat_m / np.linalg.norm(c_cat_m, axis=-1, keepdims=True)
     east, north = conics.tangent_basis(up)
     c_true = (c_cat_m + errors.horizontal_m * (z[:, :1] * east + z[:, 1:2] * north)
               + errors.height_m * z[:, 2:3] * up)
-    return World(c_true, diam_cat_m * np.maximum(1.0 + errors.diameter_share * z[:, 3], 0.05))
+    diam = diam_cat_m * np.maximum(1.0 + errors.diameter_share * z[:, 3], 0.05)
+    tier = np.asarray(crater_id) >= SITE_TIER_ID_BASE
+    if tier.any():
+        z0 = crater_normals(seed, np.array([SITE_TIER_ID_BASE]), 3)[0]  # the tier's offset
+        c_tier = c_cat_m[tier] + (
+            (errors.site_horizontal_m * z0[0] + errors.site_relative_m * z[tier, :1]) * east[tier]
+            + (errors.site_horizontal_m * z0[1] + errors.site_relative_m * z[tier, 1:2])
+            * north[tier]
+            + (errors.site_height_m * z0[2] + errors.site_relative_m * z[tier, 2:3]) * up[tier])
+        c_true[tier] = c_tier
+        diam[tier] = diam_cat_m[tier]
+    return World(c_true, diam)
 
 
 @dataclass(frozen=True)
@@ -214,14 +237,31 @@ class SensorNoise:
     catalogue: CatalogueErrors
 
 
+def catalogue_sigmas(noise: SensorNoise, rho_m: np.ndarray, site: np.ndarray | None = None
+                     ) -> tuple[np.ndarray | float, np.ndarray | float]:
+    """The catalogue's share of a measurement's 1-sigma, per crater (m): across the line of
+    sight (the horizontal error; over the range, a bearing's) and along it (the vertical error,
+    and with apparent-size ranges the diameter's). `site` (N,) marks the site tier's craters,
+    which carry the flight map's relative error instead (its common offset is not noise)."""
+    cat = noise.catalogue
+    h, v, d = cat.horizontal_m, cat.height_m, cat.diameter_share
+    if site is not None and np.any(site):
+        h = np.where(site, cat.site_relative_m, h)
+        v = np.where(site, cat.site_relative_m, v)
+        d = np.where(site, 0.0, d)
+    return h, (np.hypot(v, rho_m * d) if noise.range_source == "apparent_size" else v)
+
+
 def measurement_sigmas(noise: SensorNoise, rho_m: np.ndarray, semi_major_px: np.ndarray,
-                       sightings: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                       sightings: np.ndarray | None = None, site: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
     """Per crater (N,): the bearing's 1-sigma per axis (rad) and the range's (m) at ranges rho_m
     (m) and apparent semi-major axes (px). Bearing: the pixel noise as sigma_px / f (its value
     at the boresight, an upper bound elsewhere in a pinhole image) and the catalogue's
-    horizontal error across the line of sight (sigma_h / rho). Range: the source's noise
-    (`apparent_size_range_sigma` for apparent sizes) and the catalogue's vertical error, along
-    the line of sight to first order (the camera looks down). Without ranges: 1 m (unused).
+    horizontal error across the line of sight (`catalogue_sigmas`). Range: the source's noise
+    (`apparent_size_range_sigma` for apparent sizes) and the catalogue's along the line of
+    sight, to first order (the camera looks down). Without ranges: 1 m (unused). `site` (N,)
+    marks the site tier's craters (their map's relative error).
 
     A catalogue error is the same in every frame that sees the crater: a filter that fuses K
     sightings as independent must count it once, so `sightings` (N,) (K per crater) multiplies
@@ -229,13 +269,13 @@ def measurement_sigmas(noise: SensorNoise, rho_m: np.ndarray, semi_major_px: np.
     consider approximation). None: 1 (a single-frame fix)."""
     rho = np.asarray(rho_m, dtype=float)
     k = np.sqrt(np.ones(rho.shape) if sightings is None else np.asarray(sightings, float))
-    cat = noise.catalogue
-    sigma_b = np.hypot(noise.sigma_px / noise.f_px, k * cat.horizontal_m / rho)
+    cat_h, cat_r = catalogue_sigmas(noise, rho, site)
+    sigma_b = np.hypot(noise.sigma_px / noise.f_px, k * cat_h / rho)
     if noise.range_source == "per_crater":
-        sigma_r = np.hypot(noise.sigma_range_m, k * cat.height_m)
+        sigma_r = np.hypot(noise.sigma_range_m, k * cat_r)
     elif noise.range_source == "apparent_size":
         sigma_r = np.hypot(apparent_size_range_sigma(rho, semi_major_px, noise.sigma_px, 0.0),
-                           k * np.hypot(cat.height_m, rho * cat.diameter_share))
+                           k * cat_r)
     else:
         sigma_r = np.ones(rho.shape)
     return sigma_b, sigma_r

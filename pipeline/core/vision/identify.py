@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from pipeline.core.body.synthetic import SITE_TIER_ID_BASE
 from pipeline.core.estimation.estimators import CheckOptions, RobustOptions, estimate_pose
 from pipeline.core.estimation.estimators.robust import chi2_gates
 from pipeline.core.estimation.measurement import squared_normalised_residuals
@@ -169,9 +170,8 @@ def track(meas: sensor.EllipseMeasurement, r_mci_m: np.ndarray, q_mci_from_body:
 def _verify(meas: sensor.EllipseMeasurement, matched: np.ndarray, confidence: np.ndarray,
             dcm_body_from_mcmf: np.ndarray, dcm_mci_from_mcmf: np.ndarray, craters: CraterArrays,
             phys: PhysicalSensor, opts: IdentifyOptions, rng: np.random.Generator) -> Match:
-    """The robust pose (RANSAC, chi-square refit; `pipeline.core.estimation.estimators.robust`) of
-    the
-    matched detections, at most VERIFY_MAX_CRATERS of them; the matches within its chi-square
+    """The robust pose (RANSAC, chi-square refit; `pipeline.core.estimation.estimators.robust`)
+    of the matched detections, at most VERIFY_MAX_CRATERS of them; the matches within its chi-square
     gate are the identified craters."""
     cam = phys.camera
     n = matched.size
@@ -183,8 +183,9 @@ def _verify(meas: sensor.EllipseMeasurement, matched: np.ndarray, confidence: np
                      @ dcm_mci_from_mcmf.T, np.nan)
     rho_for_sigma = np.where(np.isfinite(rho_size), rho_size, np.nanmedian(rho_size)
                              if known.any() else 1.0)
+    site = known & (craters.crater_id[np.maximum(matched, 0)] >= SITE_TIER_ID_BASE)
     sigma_b, sigma_r = measurement_sigmas(opts.sensor_noise, rho_for_sigma, meas.semi_major_px,
-                                          None)
+                                          None, site)
     sigma_b = np.broadcast_to(np.asarray(sigma_b, float), (n,)).copy()
     sigma_r = np.broadcast_to(np.asarray(sigma_r, float), (n,)).copy()
     identified = np.zeros(n, bool)

@@ -27,23 +27,11 @@ from pipeline.io.catalogue.db import (
 )
 from pipeline.io.catalogue.formats import format_fingerprint, load_formats
 from pipeline.io.catalogue.source import source_sha256
-from pipeline.io.catalogue.validate import default_db_path, source_key
+from pipeline.io.catalogue.validate import default_db_path, site_tier_table, source_key
 
 __all__ = [
-    'Catalogue',
-    "CatalogueError",
-    'build_catalogue',
-    'build_from_config',
-    'check_catalogue_unchanged',
-    'default_db_path',
-    'format_fingerprint',
-    'load_catalogue',
-    'load_formats',
-    'load_recorded_catalogue',
-    'read_meta',
-    'recorded_catalogue_db',
-    'recorded_facts',
-    'share_catalogue',
-    'source_key',
-    'source_sha256',
+    "Catalogue", "CatalogueError", "build_catalogue", "build_from_config",
+    "check_catalogue_unchanged", "default_db_path", "format_fingerprint", "load_catalogue",
+    "load_formats", "load_recorded_catalogue", "read_meta", "recorded_catalogue_db",
+    "recorded_facts", "share_catalogue", "site_tier_table", "source_key", "source_sha256",
 ]

@@ -44,13 +44,15 @@ def build_catalogue(source: str | Path, *, db_path: Path, key: str, fmt_name: st
                     healpix_order: int = 6, max_reject_share: float | None = None,
                     seed: int = 2018, min_diam_km: float = 1.0, max_diam_km: float = 300.0,
                     expected_sha256: str | None = None,
-                    formats: dict[str, SourceFormat] | None = None) -> dict[str, Any]:
+                    formats: dict[str, SourceFormat] | None = None,
+                    extra: pl.DataFrame | None = None) -> dict[str, Any]:
     """Build the catalogue database `db_path` from `source` ("synthetic" or a file); returns
     the catalogue_meta row.
 
     A file is read once: its sha256 and the parse use the same bytes (`expected_sha256`, when
     given, must match them). `max_reject_share` None is the format's own; `seed`, `min_diam_km`
-    and `max_diam_km` (km) drive the synthetic generator. Nothing is changed on failure.
+    and `max_diam_km` (km) drive the synthetic generator; `extra` rows (the site tier, as
+    kept rows) are added to the source's. Nothing is changed on failure.
     """
     check_target(Path(db_path))
     t0 = time.perf_counter()
@@ -78,6 +80,8 @@ def build_catalogue(source: str | Path, *, db_path: Path, key: str, fmt_name: st
         share = fmt.max_reject_share if max_reject_share is None else max_reject_share
         check_reject_share(path, fmt, rejects, rows_read, share)
         source_path, generator_seed = str(path.resolve()), None
+    if extra is not None:
+        kept = pl.concat([kept, extra.select(kept.columns)])
     craters = with_positions(kept, healpix_order)
     duplicates = find_duplicates(craters)
     meta = {
@@ -96,13 +100,15 @@ def build_catalogue(source: str | Path, *, db_path: Path, key: str, fmt_name: st
         "format_file": fmt.defined_in if fmt else None,
         "format_spec": json.dumps(fmt.spec(), sort_keys=True) if fmt else None,
         "format_sha256": format_fingerprint(fmt) if fmt else None,
+        "rows_site_tier": 0 if extra is None else extra.height,
     }
     meta["build_s"] = round(time.perf_counter() - t0, 3)
     write_database(db_path, craters, rejects, meta, duplicates)
     return meta
 
 
-def build_from_config(c: Any, key: str, expected_sha256: str | None = None) -> dict[str, Any]:
+def build_from_config(c: Any, key: str, expected_sha256: str | None = None,
+                      extra: pl.DataFrame | None = None) -> dict[str, Any]:
     """`build_catalogue` with the fields of a `CatalogueConfig` (`cfg.catalogue`); relative
     source and database paths are taken from the project root (`workspace().resolve`)."""
     ws = workspace()
@@ -111,7 +117,7 @@ def build_from_config(c: Any, key: str, expected_sha256: str | None = None) -> d
         source, db_path=ws.resolve(c.db_path), key=key, fmt_name=c.format,
         healpix_order=c.healpix_order, max_reject_share=c.max_reject_share, seed=c.seed,
         min_diam_km=c.synthetic_min_diam_km, max_diam_km=c.synthetic_max_diam_km,
-        expected_sha256=expected_sha256)
+        expected_sha256=expected_sha256, extra=extra)
 
 
 def check_target(db_path: Path) -> None:

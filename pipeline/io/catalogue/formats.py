@@ -58,7 +58,7 @@ META_SCHEMA = {"key": pl.String, "source_path": pl.String, "sha256": pl.String, 
                "rows_read": pl.Int64, "rows_kept": pl.Int64, "rows_rejected": pl.Int64,
                "healpix_order": pl.Int64, "generator_seed": pl.Int64, "ingest_time": pl.String,
                "build_s": pl.Float64, "rows_duplicate": pl.Int64, "format_file": pl.String,
-               "format_spec": pl.String, "format_sha256": pl.String}
+               "format_spec": pl.String, "format_sha256": pl.String, "rows_site_tier": pl.Int64}
 
 
 CRATERS_SCHEMA = ("crater_id", "source_id", "lat_deg", "lon_deg", "diam_km", "x_m", "y_m", "z_m",

@@ -12,7 +12,7 @@ import numpy as np
 import polars as pl
 from scipy.spatial import cKDTree
 
-from pipeline.core.body.synthetic import generate_catalogue
+from pipeline.core.body.synthetic import SITE_TIER_ID_BASE, generate_catalogue, site_tier
 from pipeline.core.math import frames, tiling
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.errors import CatalogueError
@@ -288,6 +288,24 @@ def synthetic_table(seed: int, min_diam_km: float, max_diam_km: float) -> pl.Dat
         "source_id": pl.Series([None] * lat.size, dtype=pl.String),
         "lat_deg": np.degrees(lat), "lon_deg": np.degrees(lon), "diam_km": diam,
         "source": pl.Series([SYNTHETIC] * lat.size, dtype=pl.String),
+    })
+
+
+def site_tier_table(c: Any, site_lat_deg: float, site_lon_deg: float, heading_deg: float
+                    ) -> pl.DataFrame:
+    """The site tier (`pipeline.core.body.synthetic.site_tier`) of a CatalogueConfig `c` as
+    kept rows, numbered from SITE_TIER_ID_BASE + 1, up to the global catalogue's smallest
+    diameter."""
+    lat, lon, diam = site_tier(
+        np.random.default_rng(c.site_seed), np.radians(site_lat_deg), np.radians(site_lon_deg),
+        np.radians(heading_deg), c.site_uprange_km * 1e3, c.site_downrange_km * 1e3,
+        c.site_min_diam_m, c.site_min_diam_growth_m_per_km / 1e3, c.site_half_width_km * 1e3,
+        c.site_width_share, c.synthetic_min_diam_km, MOON_RADIUS_M)
+    return pl.DataFrame({
+        "crater_id": SITE_TIER_ID_BASE + np.arange(1, lat.size + 1, dtype=np.int64),
+        "source_id": pl.Series([None] * lat.size, dtype=pl.String),
+        "lat_deg": np.degrees(lat), "lon_deg": np.degrees(lon), "diam_km": diam,
+        "source": pl.Series(["site_tier"] * lat.size, dtype=pl.String),
     })
 
 

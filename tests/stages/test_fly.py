@@ -1,0 +1,181 @@
+"""The closed loop (`fly`): a lander flown by guidance on its navigator's estimate to the site,
+the open-loop tables written from the flight, the touchdown's record and its statuses, and the
+config's refusals, one line naming the key.
+
+The flights here use the paper's sensor (Eq. 9 visibility, the coin flip) on the 5 km synthetic
+catalogue, so that a whole descent from PDI takes seconds; the physical camera with tracking
+flies in the `landing` scenario (`just run landing`, the benchmarks, the slow test below).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+from conftest import REPO, run_stages
+from scipy.spatial.transform import Rotation
+
+from pipeline.config import ConfigError, load_config
+from pipeline.core.dynamics.powered import LanderState
+from pipeline.core.guidance.base import Target
+from pipeline.core.guidance.fly import TouchdownLimits
+from pipeline.io.store import RunStore
+from pipeline.sim import loop
+
+LANDING = str(REPO / "runs" / "scenarios" / "landing.toml")
+FAST = {"detection": {"sensor": "paper", "camera_mounting_deg": [0.0, 0.0, 0.0],
+                      "bearing": "ellipse_centre", "range_source": "per_crater",
+                      "site_map_relative_sigma_m": 0.0},
+        "identification": {"mode": "simulated"}, "estimation": {"catalogue_sigmas": "ignore"}}
+
+
+def fast_landing(run_id: str, db: Path, **over) -> object:
+    """The landing scenario with the paper's sensor on the 5 km synthetic catalogue (`db`)."""
+    sections = {k: dict(v) for k, v in FAST.items()}
+    sections["catalogue"] = {"synthetic_min_diam_km": 5.0, "db_path": str(db),
+                             "site_tier": False}
+    for k, v in over.items():
+        sections[k] = {**sections.get(k, {}), **v}
+    return load_config(LANDING, run_id, sections)
+
+
+@pytest.fixture(scope="module")
+def flown(tmp_path_factory, catalogue_db) -> RunStore:
+    root = tmp_path_factory.mktemp("fly")
+    cfg = fast_landing("flown", catalogue_db)
+    run_stages(cfg, root)
+    return RunStore("flown", root)
+
+
+def read(store: RunStore, name: str) -> pl.DataFrame:
+    return pl.read_parquet(store.path(f"{name}.parquet"))
+
+
+def test_the_navigated_lander_lands_at_the_site(flown):
+    t = read(flown, "touchdown").row(0, named=True)
+    assert t["status"] == "landed", t["reason"]
+    assert t["vertical_speed_m_s"] <= 2.0 and t["horizontal_speed_m_s"] <= 1.0
+    assert t["tilt_deg"] <= 10.0 and t["propellant_left_kg"] > 0.0
+    assert t["miss_m"] < 20.0  # the paper's sensor at ~3 craters a frame, IMU and altimeter
+    # the decomposition: miss = flight-technical error - knowledge error (site plane)
+    assert t["miss_downrange_m"] == pytest.approx(t["fte_downrange_m"]
+                                                  - t["knowledge_downrange_m"], abs=1e-6)
+    assert t["miss_crossrange_m"] == pytest.approx(t["fte_crossrange_m"]
+                                                   - t["knowledge_crossrange_m"], abs=1e-6)
+    assert math.hypot(t["miss_downrange_m"], t["miss_crossrange_m"]) == pytest.approx(
+        t["miss_m"], rel=1e-9)
+
+
+def test_the_closed_loop_writes_the_open_loop_tables_with_their_columns(flown, catalogue_db):
+    from conftest import small_config
+
+    epoch = load_config(LANDING).trajectory.epoch_utc
+    open_cfg = small_config("open", catalogue_db, {"start_s": 1800.0, "end_s": 1802.0,
+                                                   "epoch_utc": epoch})
+    root = flown.root / "open"
+    run_stages(open_cfg, root)
+    opened = RunStore("open", root)
+    for name in ("trajectory", "imu", "imu_truth", "altimeter", "detections", "frames",
+                 "navigation"):
+        a, b = read(opened, name), read(flown, name)
+        assert a.schema == b.schema, name
+    # the flight's tables follow it: the trajectory ends at the touchdown
+    traj, down = read(flown, "trajectory"), read(flown, "touchdown").row(0, named=True)
+    assert traj["t_s"].max() <= down["t_s"] < traj["t_s"].max() + 1.0
+    assert traj["altitude_m"].min() < 5.0  # the last frame within the last second
+    assert read(flown, "navigation")["status"].to_list().count("ok") > 0.9 * traj.height
+    entry = flown.entry("score")
+    assert entry is not None and "fly" in entry["inputs"]
+
+
+def test_the_guidance_table_follows_the_phases_and_the_rocket_equation(flown):
+    g = read(flown, "guidance")
+    phases = [p for i, p in enumerate(g["phase"].to_list())
+              if i == 0 or p != g["phase"][i - 1]]
+    assert phases == ["coast", "braking", "approach", "terminal"]
+    assert (g.filter(pl.col("phase") == "coast")["throttle"] == 0.0).all()
+    burn = g.filter(pl.col("phase") != "coast")
+    assert burn["throttle"].min() >= 0.25 - 1e-9 and burn["throttle"].max() <= 1.0 + 1e-9
+    # the true mass falls as the rocket equation of the thrust flown: between calls
+    # m1 = m0 - T dt / (Isp g0), to the zero-order hold's exactness
+    t, m, thrust = (g[c].to_numpy() for c in ("t_s", "mass_kg", "thrust_n"))
+    isp_g0 = 320.0 * 9.80665
+    predicted = m[:-1] - thrust[:-1] * np.diff(t) / isp_g0
+    assert np.max(np.abs(predicted - m[1:])) < 1e-6
+    # the flight software books what it commands with the Isp it assumes (here the true one)
+    assert np.max(np.abs(g["mass_belief_kg"].to_numpy() - m)) < 1e-6
+
+
+def test_out_of_fuel_is_never_a_landing(tmp_path, catalogue_db):
+    cfg = fast_landing("dry", catalogue_db, flight={"propellant_kg": 40.0, "coast_s": 20.0})
+    run_stages(cfg, tmp_path)
+    t = read(RunStore("dry", tmp_path), "touchdown").row(0, named=True)
+    assert t["status"] == "out_of_fuel"
+    assert t["t_out_of_fuel_s"] < t["t_s"] and t["propellant_left_kg"] == pytest.approx(0.0)
+
+
+def _contact(v_up_m_s: float, v_east_m_s: float, tilt_deg: float, mass_kg: float = 700.0
+             ) -> tuple[LanderState, Target]:
+    """A contact at the site on the equator (lon 0: MCMF = MCI at t = 0) with these speeds
+    relative to the ground and this tilt about the north axis."""
+    r = np.array([1_737_400.0, 0.0, 0.0])
+    v_ground = np.array([0.0, 2.6617e-6 * r[0], 0.0])  # the rotating ground's velocity
+    v = v_ground + np.array([v_up_m_s, v_east_m_s, 0.0])
+    # body -z up (MCI x): Ry(-90 deg); tilted from it about MCI z by the tilt
+    dcm = (Rotation.from_euler("z", tilt_deg, degrees=True).as_matrix()
+           @ Rotation.from_euler("y", -90.0, degrees=True).as_matrix())
+    assert abs(np.degrees(np.arccos(-dcm[:, 2] @ np.array([1.0, 0.0, 0.0]))) - tilt_deg) < 1e-9
+    q = Rotation.from_matrix(dcm).as_quat()
+    return LanderState(0.0, r, v, q, np.zeros(3), mass_kg), Target(r)
+
+
+@pytest.mark.parametrize("v_up, v_east, tilt, status", [
+    (-1.0, 0.2, 2.0, "landed"), (-2.5, 0.0, 0.0, "crashed"), (-1.0, 1.5, 0.0, "crashed"),
+    (-1.0, 0.0, 12.0, "crashed")])
+def test_a_touchdown_outside_its_limits_is_a_crash(v_up, v_east, tilt, status):
+    contact, target = _contact(v_up, v_east, tilt)
+    rec = loop.FlightRecord(contact=contact)
+
+    class Dry:
+        t_out_of_fuel_s = math.nan
+
+    assert loop._status(rec, Dry(), target, TouchdownLimits()) == status  # type: ignore[arg-type]
+
+
+def test_a_contact_after_the_tanks_ran_dry_is_out_of_fuel_whatever_its_speed():
+    contact, target = _contact(-0.5, 0.0, 0.0)
+
+    class Empty:
+        t_out_of_fuel_s = -10.0
+
+    rec = loop.FlightRecord(contact=contact)
+    assert loop._status(rec, Empty(), target, TouchdownLimits()) == "out_of_fuel"  # type: ignore
+    assert loop._status(loop.FlightRecord(), Empty(), target, TouchdownLimits()) == "diverged"
+
+
+@pytest.mark.parametrize("section, value, key", [
+    ({"flight": {"site_lat_deg": 80.0, "approach_heading_deg": 90.0}}, None,
+     "flight.site_lat_deg"),
+    ({"flight": {"thrust_scale": 0.2}}, None, "flight.thrust_scale"),
+    ({"flight": {"throttle_range": [0.8, 0.5]}}, None, "flight.throttle_range"),
+    ({"flight": {"guidance_rate_hz": 7.0}}, None, "flight.guidance_rate_hz"),
+    ({"trajectory": {"frame_rate_hz": 3.0}}, None, "trajectory.frame_rate_hz"),
+    ({"identification": {"mode": "tracking"}, "detection": {"sensor": "paper"}}, None,
+     "identification.mode"),
+])
+def test_bad_closed_loop_input_is_one_line_naming_the_key(section, value, key):
+    with pytest.raises(ConfigError) as err:
+        load_config(LANDING, "bad", section)
+    message = str(err.value)
+    assert key in message and "\n" not in message, message
+
+
+def test_an_unplannable_descent_names_the_pdi_range(tmp_path, catalogue_db):
+    from pipeline.errors import PipelineError
+
+    cfg = fast_landing("short", catalogue_db, flight={"pdi_range_km": 150.0})
+    with pytest.raises(PipelineError, match=r"flight.pdi_range_km = 150 km: the nominal "):
+        run_stages(cfg, tmp_path)
