@@ -54,6 +54,7 @@ from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors.conics import rim_points, tangent_basis
 
 BASES = ("synthetic", "grid", "none")
+Resolution = float | np.ndarray | None  # the ground resolution (m) a query needs
 
 
 @dataclass(frozen=True)
@@ -156,33 +157,25 @@ class _Generator:
         for i, key in enumerate(keys.tolist()):
             nodes = tiles.tile_nodes(key, n)
             delta = float(self.spacing_m(key >> 56))
-            parts: dict[int, list[tuple[float, float]]] = {}
+            octaves: dict[int, list[float]] = {}  # stride -> the wavelengths sampled at it
             for lam_k in lam[lam >= self.opts.roughness_min_cells * delta]:
-                parts.setdefault(self._stride(lam_k, delta), []).append((lam_k, 2.0 * lam_k))
+                octaves.setdefault(self._stride(lam_k, delta), []).append(float(lam_k))
+            kb = self._stride(self.base.smooth_m, delta) if self.base is not None else -1
             h = np.zeros((side, side))
-            for k, bands in parts.items():
+            for k in set(octaves) | ({kb} - {-1}):
                 pts = nodes if k == 1 else tiles.sub_lattice(key, n, k)
-                lo, hi = min(b[0] for b in bands), max(b[1] for b in bands)
-                v = self.noise.height_m(pts.reshape(-1, 3) * r, lo, hi).reshape(pts.shape[:2])
-                if self.base is not None and k == self._base_stride(delta):
-                    v = v + self.base.height_m(pts)
-                h += v if k == 1 else tiles.upsample_matrix(n, k) @ v @ tiles.upsample_matrix(
-                    n, k).T
-            kb = self._base_stride(delta)
-            if self.base is not None and kb not in parts:
-                pts = nodes if kb == 1 else tiles.sub_lattice(key, n, kb)
-                v = self.base.height_m(pts)
-                h += v if kb == 1 else tiles.upsample_matrix(n, kb) @ v @ tiles.upsample_matrix(
-                    n, kb).T
-            flat = nodes.reshape(-1, 3)
-            h += self.craters.relief_m(flat, self.blocks,
+                v = np.zeros(pts.shape[:2])
+                if k in octaves:
+                    v += self.noise.height_m(pts.reshape(-1, 3) * r, min(octaves[k]),
+                                             2.0 * max(octaves[k])).reshape(v.shape)
+                if k == kb and self.base is not None:
+                    v += self.base.height_m(pts)
+                w = tiles.upsample_matrix(n, k) if k > 1 else None
+                h += v if w is None else w @ v @ w.T
+            h += self.craters.relief_m(nodes.reshape(-1, 3), self.blocks,
                                        self.opts.min_crater_cells * delta).reshape(side, side)
             out[i] = h
         return out
-
-    def _base_stride(self, delta: float) -> int:
-        assert self.base is not None
-        return self._stride(self.base.smooth_m, delta)
 
 
 def _rows(a: np.ndarray) -> np.ndarray:
@@ -251,7 +244,7 @@ class Terrain:
 
     # --- sampling ---------------------------------------------------------------------------------
 
-    def _order(self, resolution_m: np.ndarray | float | None, n: int) -> np.ndarray:
+    def _order(self, resolution_m: Resolution, n: int) -> np.ndarray:
         res = self.opts.default_resolution_m if resolution_m is None else resolution_m
         res = np.maximum(np.broadcast_to(np.asarray(res, dtype=float), (n,)),
                          self.min_resolution_m)
@@ -296,7 +289,7 @@ class Terrain:
         beta = (aa * hy - ab * hx) / det
         return h, alpha[:, None] * a + beta[:, None] * b
 
-    def _eval(self, u: np.ndarray, resolution_m, deriv: bool
+    def _eval(self, u: np.ndarray, resolution_m: Resolution, deriv: bool
               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         u = _rows(u)
         u = u / np.linalg.norm(u, axis=1, keepdims=True)
@@ -308,12 +301,12 @@ class Terrain:
 
     # --- the Surface interface --------------------------------------------------------------------
 
-    def height_m(self, u_mcmf: np.ndarray, resolution_m=None) -> np.ndarray:
+    def height_m(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Height (m) above the reference sphere at unit directions u_mcmf (..., 3)."""
         shape = np.shape(u_mcmf)[:-1]
         return self._eval(u_mcmf, resolution_m, False)[0].reshape(shape)
 
-    def normal(self, u_mcmf: np.ndarray, resolution_m=None) -> np.ndarray:
+    def normal(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Outward unit normals (..., 3): n ~ u - R / (R + h) grad h."""
         shape = np.shape(u_mcmf)
         h, g, u = self._eval(u_mcmf, resolution_m, True)
@@ -322,14 +315,14 @@ class Terrain:
         nv = u - (r / (r + h))[:, None] * g
         return (nv / np.linalg.norm(nv, axis=1, keepdims=True)).reshape(shape)
 
-    def slope_deg(self, u_mcmf: np.ndarray, resolution_m=None) -> np.ndarray:
+    def slope_deg(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Local slope (deg): the angle between the normal and the local vertical."""
         u = _rows(u_mcmf)
         u = u / np.linalg.norm(u, axis=1, keepdims=True)
         cos = np.einsum("ni,ni->n", self.normal(u, resolution_m), u)
         return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).reshape(np.shape(u_mcmf)[:-1])
 
-    def altitude_m(self, r_mcmf_m: np.ndarray, resolution_m=None) -> np.ndarray:
+    def altitude_m(self, r_mcmf_m: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Height (m) of points (..., 3) above the terrain straight below them."""
         r = _rows(r_mcmf_m)
         rn = np.linalg.norm(r, axis=1)
@@ -337,7 +330,7 @@ class Terrain:
         return (rn - self.reference_radius_m - h).reshape(np.shape(r_mcmf_m)[:-1])
 
     def rim_crest_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
-                            n_points: int = 32, resolution_m=None) -> np.ndarray:
+                            n_points: int = 32, resolution_m: Resolution = None) -> np.ndarray:
         """Mean terrain height (m) on each crater's rim circle (radius D / 2 about the centre's
         direction): the rim crest on this terrain, its base, neighbours and roughness included
         (resolution default D / 50)."""
@@ -361,7 +354,7 @@ class Terrain:
         return self.cache.resident_bytes
 
     def intersect(self, origin_mcmf_m: np.ndarray, direction_mcmf: np.ndarray,
-                  resolution_m=None) -> np.ndarray:
+                  resolution_m: Resolution = None) -> np.ndarray:
         """Distance (m) along unit rays (..., 3) from origins (..., 3) (MCMF, m) to the first
         terrain point in front of the origin; NaN where the ray misses."""
         o, d = np.broadcast_arrays(np.asarray(origin_mcmf_m, float),

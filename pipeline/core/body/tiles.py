@@ -86,7 +86,7 @@ def spacing_m(order: np.ndarray | int, cells: int, radius_m: float) -> np.ndarra
     return radius_m * FACE_SIDE_M_PER_RADIUS / (np.left_shift(1, np.asarray(order)) * cells)
 
 
-def order_for(resolution_m: np.ndarray, cells: int, radius_m: float, lo: int, hi: int
+def order_for(resolution_m: np.ndarray | float, cells: int, radius_m: float, lo: int, hi: int
               ) -> np.ndarray:
     """Coarsest order (int64) whose mean spacing is <= resolution_m, clipped to [lo, hi]."""
     res = np.maximum(np.asarray(resolution_m, dtype=float), 1e-9)
