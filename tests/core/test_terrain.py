@@ -242,6 +242,14 @@ def test_cache_bounds_memory_and_eviction_changes_nothing():
         assert small.memory_bytes <= 40 * small.cache.tile_bytes
     assert small.cache.made > small.cache.capacity
     assert np.array_equal(np.concatenate(heights_small), np.concatenate(heights_big))
-    u = rng.standard_normal((300, 3))  # ~300 tiles in one call: more than the cache can hold
+    # 45 tiles in a row at order 13: 40 fill the cache; a call reading 35 of them and 5 new ones
+    # evicts the other 5; one reading 38 of them and 5 new ones cannot (it would evict its own)
+    o, cols = 13, np.arange(45)
+    u = tiles.xyf2vec((1000 + cols + 0.5) / 2**o, np.full(45, 1000.5 / 2**o), np.full(45, 4))
+    fresh = Terrain.build(opts)
+    fresh._sample(u[:40], np.full(40, o), False)
+    ref = big._sample(u, np.full(45, o), False)[0]
+    assert np.array_equal(fresh._sample(u[5:], np.full(40, o), False)[0], ref[5:])
+    fresh._sample(u[:40], np.full(40, o), False)
     with pytest.raises(RuntimeError, match="too small"):
-        small.height_m(u / np.linalg.norm(u, axis=1, keepdims=True), 20.0)
+        fresh._sample(u[2:], np.full(43, o), False)

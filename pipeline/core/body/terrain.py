@@ -51,7 +51,7 @@ from pipeline.core.body.terrain_fields import (
 )
 from pipeline.core.body.terrain_rays import march
 from pipeline.core.math.constants import MOON_RADIUS_M
-from pipeline.core.sensors.conics import rim_points, tangent_basis
+from pipeline.core.sensors.conics import tangent_basis
 
 BASES = ("synthetic", "grid", "none")
 Resolution = float | np.ndarray | None  # the ground resolution (m) a query needs
@@ -144,6 +144,28 @@ class _Generator:
         smooth over scale_m with 8 nodes (Catmull-Rom error ~1 %)."""
         k = int(2 ** np.floor(np.log2(max(scale_m / (8.0 * delta), 1.0))))
         return min(k, self.opts.tile_cells)
+
+    def heights_at(self, pts: np.ndarray, order: np.ndarray) -> np.ndarray:
+        """Heights (N, K) straight from the fields at groups of unit vectors (N, K, 3), each
+        group at its level `order` (N,); craters grouped by the catalogue's order-6 cells."""
+        out = np.zeros(pts.shape[:2])
+        if self.base is not None:
+            out += self.base.height_m(pts)
+        cell = tiles.vec2xyf(pts[:, 0])  # group's first point: its HEALPix cell at order 6
+        cell_key = tiles.tile_key(6, cell[2], np.floor(cell[0] * 64), np.floor(cell[1] * 64))
+        for o in np.unique(order):
+            delta = float(self.spacing_m(o))
+            for ck in np.unique(cell_key[order == o]):
+                g = np.flatnonzero((order == o) & (cell_key == ck))
+                k = pts.shape[1]
+                flat = pts[g].reshape(-1, 3)
+                blocks = np.arange(g.size * k).reshape(g.size, k)
+                out[g] += self.noise.height_m(flat * self.opts.radius_m,
+                                              self.opts.roughness_min_cells * delta
+                                              ).reshape(g.size, k)
+                out[g] += self.craters.relief_m(flat, blocks, self.opts.min_crater_cells * delta
+                                                ).reshape(g.size, k)
+        return out
 
     def make(self, keys: np.ndarray) -> np.ndarray:
         """Heights (T, n + 3, n + 3) float32 of tiles: craters on the nodes, the roughness
@@ -330,17 +352,21 @@ class Terrain:
         return (rn - self.reference_radius_m - h).reshape(np.shape(r_mcmf_m)[:-1])
 
     def rim_crest_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
-                            n_points: int = 32, resolution_m: Resolution = None) -> np.ndarray:
-        """Mean terrain height (m) on each crater's rim circle (radius D / 2 about the centre's
-        direction): the rim crest on this terrain, its base, neighbours and roughness included
-        (resolution default D / 50)."""
+                            n_points: int = 32) -> np.ndarray:
+        """Mean height (m) over each crater's rim circle (arc distance D / 2 from the centre's
+        direction, `n_points` points): the rim crest on this terrain with its base, neighbours
+        and roughness, from the generators themselves (no tile rounding of the crest's kink),
+        at resolution D / 500 (no finer than the terrain's finest)."""
         c = _rows(c_mcmf_m)
         d = np.asarray(diam_m, dtype=float).reshape(-1)
         u = c / np.linalg.norm(c, axis=1, keepdims=True)
-        pts = rim_points(u * self.reference_radius_m, d / 2.0, n_points)  # (N, K, 3)
-        res = d / 50.0 if resolution_m is None else np.broadcast_to(resolution_m, d.shape)
-        h = self.height_m(pts.reshape(-1, 3), np.repeat(res, n_points))
-        return h.reshape(-1, n_points).mean(axis=1)
+        e1, e2 = tangent_basis(u)
+        phi = 2 * np.pi * np.arange(n_points) / n_points
+        theta = (d / (2.0 * self.reference_radius_m))[:, None, None]  # arc D / 2: rho = 1
+        side = np.cos(phi)[None, :, None] * e1[:, None] + np.sin(phi)[None, :, None] * e2[:, None]
+        pts = self._true(np.cos(theta) * u[:, None] + np.sin(theta) * side)  # (N, K, 3)
+        order = self._order(d / 500.0, d.size)
+        return self._gen.heights_at(pts, order).mean(axis=1) + self.bias_m
 
     def rim_height_m(self, diam_m: np.ndarray, depth_scale: np.ndarray | float = 1.0
                      ) -> np.ndarray:
