@@ -281,7 +281,10 @@ class Terrain:
         """Heights (N,) at unit vectors (N, 3) (truth frame) at per-point orders, and (deriv)
         the tangent gradient (N, 3) (m per m along the sphere of radius R)."""
         n = self.opts.tile_cells
-        x, y, face = tiles.vec2xyf(u_true)
+        if deriv:
+            x, y, face, dx, dy = tiles.vec2xyf(u_true, grad=True)
+        else:
+            x, y, face = tiles.vec2xyf(u_true)
         scale = (np.left_shift(1, order) * n).astype(float)
         gx, gy = x * scale, y * scale
         last = np.left_shift(1, order) - 1
@@ -294,22 +297,17 @@ class Terrain:
         side = n + 3
         first = (slots * side + iy) * side + ix
         v = self.cache.flat[first[:, None] + self._offsets].reshape(-1, 4, 4).astype(float)
-        wx, dwx = tiles.catmull_rom(cx - ix)
-        wy, dwy = tiles.catmull_rom(cy - iy)
+        wx, dwx = tiles.catmull_rom(cx - ix, deriv)
+        wy, dwy = tiles.catmull_rom(cy - iy, deriv)
         vx = np.einsum("nab,nb->na", v, wx)
         h = np.einsum("na,na->n", wy, vx)
         if not deriv:
             return h, None
-        hx = np.einsum("na,nab,nb->n", wy, v, dwx) * scale
-        hy = np.einsum("na,na->n", dwy, vx) * scale
-        eps = 1e-7
-        a = (tiles.xyf2vec(x + eps, y, face) - tiles.xyf2vec(x - eps, y, face)) / (2 * eps)
-        b = (tiles.xyf2vec(x, y + eps, face) - tiles.xyf2vec(x, y - eps, face)) / (2 * eps)
-        aa, ab, bb = (np.einsum("ni,ni->n", p, q) for p, q in ((a, a), (a, b), (b, b)))
-        det = (aa * bb - ab * ab) * self.reference_radius_m
-        alpha = (bb * hx - ab * hy) / det
-        beta = (aa * hy - ab * hx) / det
-        return h, alpha[:, None] * a + beta[:, None] * b
+        assert dwx is not None and dwy is not None
+        # dh / dx, dh / dy per face unit, times the face coordinates' gradients per metre
+        hx = np.einsum("na,nab,nb->n", wy, v, dwx) * scale / self.reference_radius_m
+        hy = np.einsum("na,na->n", dwy, vx) * scale / self.reference_radius_m
+        return h, hx[:, None] * dx + hy[:, None] * dy
 
     def _eval(self, u: np.ndarray, resolution_m: Resolution, deriv: bool
               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:

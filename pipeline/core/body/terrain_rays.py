@@ -46,13 +46,24 @@ def march(surf, o: np.ndarray, d: np.ndarray, res: np.ndarray) -> np.ndarray:
     rk = np.maximum(res[idx], _COARSE * np.maximum(height0, 0.0))
     slope = np.tan(np.radians(opts.ray_max_slope_deg))
     tol = opts.ray_tolerance_m
+    prev_f = np.full(idx.size, np.inf)
     for _ in range(opts.ray_max_steps):
         if not idx.size:
             break
         oi, di, ri = o[idx], d[idx], res[idx]
         p = oi + t[:, None] * di
-        f, _, rn = surf._f(p, rk, False)
         fine = rk <= ri * (1.0 + 1e-9)
+        switch = np.maximum(_SWITCH_CELLS * ri, 0.5)
+        # value and gradient in one evaluation where a Newton step is due
+        want = fine & (np.isfinite(t_hi) | (prev_f < 4.0 * switch))
+        f = np.empty(idx.size)
+        rn = np.empty(idx.size)
+        g = np.zeros((idx.size, 3))
+        for sel, deriv in ((want, True), (~want, False)):
+            if sel.any():
+                f[sel], g_sel, rn[sel] = surf._f(p[sel], rk[sel], deriv)
+                if g_sel is not None:
+                    g[sel] = g_sel
         fs = np.where(fine, f, f - surf._margin(rk))
         done = fine & ((np.abs(f) <= tol) | ((f < 0) & ~seen_above))
         out[idx[done]] = t[done]
@@ -64,27 +75,28 @@ def march(surf, o: np.ndarray, d: np.ndarray, res: np.ndarray) -> np.ndarray:
         seen_above |= above | (~fine & (fs > 0))
         t_hi = np.where(below, np.minimum(t_hi, t), t_hi)
         bracketed = np.isfinite(t_hi)
-        switch = np.maximum(_SWITCH_CELLS * ri, 0.5)
-        newton = fine & ~done & (bracketed | (f < switch))
         u = p / rn[:, None]
         cos_e = -np.einsum("ni,ni->n", di, u)
         step_l = np.maximum(cos_e + slope * np.sqrt(np.maximum(1.0 - cos_e * cos_e, 0.0)), 0.05)
         t_new = np.where(refine, t, t + np.maximum(fs, 0.0) / step_l)
+        t_new = np.where(fine & bracketed, 0.5 * (t_lo + t_hi), t_new)
+        newton = want & ~done & (bracketed | (f < switch))
         if newton.any():
             k = np.flatnonzero(newton)
-            _, g, _ = surf._f(p[k], ri[k], True)
-            dfdt = -cos_e[k] - (r_ref / rn[k]) * np.einsum("ni,ni->n", di[k], g)
+            dfdt = -cos_e[k] - (r_ref / rn[k]) * np.einsum("ni,ni->n", di[k], g[k])
             with np.errstate(divide="ignore", invalid="ignore"):
                 tn = t[k] - f[k] / dfdt
-            lo_k, hi_k = t_lo[k], t_hi[k]
-            inside_br = (tn > lo_k) & (tn < hi_k) & np.isfinite(tn)
-            if_br = np.where(np.isfinite(hi_k), 0.5 * (lo_k + hi_k), t[k] + f[k] / step_l[k])
-            t_new[k] = np.where(inside_br & (dfdt < 0), tn, if_br)
-        rk = np.where(refine | fine, ri, np.maximum(ri, _COARSE * np.maximum(fs, 0.0)))
+            ok = (tn > t_lo[k]) & (tn < t_hi[k]) & np.isfinite(tn) & (dfdt < 0)
+            t_new[k] = np.where(ok, tn, t_new[k])
+        # the height expected after the step over level ground: the next level, and whether the
+        # next evaluation should bring the gradient for a Newton step
+        f_next = f - np.maximum(cos_e, 0.0) * np.maximum(fs, 0.0) / step_l
+        prev_f = np.where(fine, np.abs(f), np.where(refine, np.inf, f_next))
+        rk = np.where(refine | fine, ri, np.maximum(ri, _COARSE * np.maximum(f_next, 0.0)))
         gone = ~bracketed & (t_new > t_leave[idx])
         keep = ~done & ~gone
         idx, t, t_lo, t_hi = idx[keep], t_new[keep], t_lo[keep], t_hi[keep]
-        seen_above, rk = seen_above[keep], rk[keep]
+        seen_above, rk, prev_f = seen_above[keep], rk[keep], prev_f[keep]
     if idx.size:  # out of steps: a bracketed ray keeps its estimate
         ok = np.isfinite(t_hi)
         out[idx[ok]] = t[ok]

@@ -33,9 +33,10 @@ FACE_SIDE_M_PER_RADIUS = float(np.sqrt(np.pi / 3.0))  # mean cell side at order 
 MAX_ORDER = 24
 
 
-def vec2xyf(u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def vec2xyf(u: np.ndarray, grad: bool = False) -> tuple[np.ndarray, ...]:
     """Continuous HEALPix face coordinates of unit vectors (..., 3): x, y in [0, 1] and the base
-    face (int64), so that floor(x 2^o), floor(y 2^o) are the nested cell's (ix, iy) at order o."""
+    face (int64), so that floor(x 2^o), floor(y 2^o) are the nested cell's (ix, iy) at order o;
+    with `grad`, also the gradients (..., 3) of x and y along the unit sphere (per radian)."""
     u = np.asarray(u, dtype=float)
     z = u[..., 2]
     sth = np.hypot(u[..., 0], u[..., 1])
@@ -47,21 +48,30 @@ def vec2xyf(u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     jm = 0.5 + tt + 0.75 * z
     ifp, ifm = np.floor(jp), np.floor(jm)
     face_eq = np.where(ifp == ifm, np.mod(ifp, 4) + 4, np.where(ifp < ifm, ifp, ifm + 8))
-    x_eq, y_eq = jm - ifm, 1.0 - (jp - ifp)
     # polar caps (|z| > 2/3)
     ntt = np.minimum(np.floor(tt), 3.0)
     tp = tt - ntt
     tmp = np.sqrt(3.0) * sth / np.sqrt(1.0 + za)  # sqrt(3 (1 - |z|)), precise near the poles
-    jpp, jmp = tp * tmp, (1.0 - tp) * tmp
     north = z > 0
-    face_p = np.where(north, ntt, ntt + 8)
-    x_p = np.where(north, 1.0 - jmp, jpp)
-    y_p = np.where(north, 1.0 - jpp, jmp)
     polar = za > 2.0 / 3.0
-    face = np.where(polar, face_p, face_eq).astype(np.int64)
-    x = np.clip(np.where(polar, x_p, x_eq), 0.0, 1.0)
-    y = np.clip(np.where(polar, y_p, y_eq), 0.0, 1.0)
-    return x, y, face
+    face = np.where(polar, np.where(north, ntt, ntt + 8), face_eq).astype(np.int64)
+    x = np.where(polar, np.where(north, 1.0 - (1.0 - tp) * tmp, tp * tmp), jm - ifm)
+    y = np.where(polar, np.where(north, 1.0 - tp * tmp, (1.0 - tp) * tmp), 1.0 - (jp - ifp))
+    x, y = np.clip(x, 0.0, 1.0), np.clip(y, 0.0, 1.0)
+    if not grad:
+        return x, y, face
+    # chain rule: d tt = (2 / pi) d phi, grad phi = (-u_y, u_x, 0) / sth^2, grad z = e_z - z u
+    s2 = np.maximum(sth * sth, 1e-300)[..., None]
+    d_tt = (2.0 / np.pi) * np.stack([-u[..., 1], u[..., 0], 0.0 * z], -1) / s2
+    d_z = np.stack([0.0 * z, 0.0 * z, 1.0 + 0.0 * z], -1) - z[..., None] * u
+    # polar: tmp = sqrt(3 (1 - |z|)), d tmp = -3 sign(z) d z / (2 tmp)
+    d_tmp = (-1.5 * np.where(north, 1.0, -1.0) / np.maximum(tmp, 1e-300))[..., None] * d_z
+    t_, p_ = tmp[..., None], tp[..., None]
+    gx_p = np.where(north[..., None], d_tt * t_ - (1.0 - p_) * d_tmp, d_tt * t_ + p_ * d_tmp)
+    gy_p = np.where(north[..., None], -(d_tt * t_ + p_ * d_tmp), -d_tt * t_ + (1.0 - p_) * d_tmp)
+    gx = np.where(polar[..., None], gx_p, d_tt + 0.75 * d_z)
+    gy = np.where(polar[..., None], gy_p, -d_tt + 0.75 * d_z)
+    return x, y, face, gx, gy
 
 
 def xyf2vec(x: np.ndarray, y: np.ndarray, face: np.ndarray) -> np.ndarray:
@@ -150,12 +160,24 @@ def upsample_matrix(cells: int, stride: int) -> np.ndarray:
     return out
 
 
-def catmull_rom(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Catmull-Rom weights (..., 4) of nodes -1, 0, 1, 2 at t in [0, 1], and their derivatives."""
-    t2, t3 = t * t, t * t * t
-    w = np.stack([-t3 + 2 * t2 - t, 3 * t3 - 5 * t2 + 2, -3 * t3 + 4 * t2 + t, t3 - t2], -1)
-    dw = np.stack([-3 * t2 + 4 * t - 1, 9 * t2 - 10 * t, -9 * t2 + 8 * t + 1, 3 * t2 - 2 * t], -1)
-    return 0.5 * w, 0.5 * dw
+def catmull_rom(t: np.ndarray, deriv: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """Catmull-Rom weights (..., 4) of nodes -1, 0, 1, 2 at t in [0, 1], and (deriv) their
+    derivatives."""
+    t2 = t * t
+    t3 = t2 * t
+    w = np.empty((*np.shape(t), 4))
+    w[..., 0] = 0.5 * (-t3 + 2 * t2 - t)
+    w[..., 1] = 0.5 * (3 * t3 - 5 * t2 + 2)
+    w[..., 2] = 0.5 * (-3 * t3 + 4 * t2 + t)
+    w[..., 3] = 0.5 * (t3 - t2)
+    if not deriv:
+        return w, None
+    dw = np.empty_like(w)
+    dw[..., 0] = 0.5 * (-3 * t2 + 4 * t - 1)
+    dw[..., 1] = 0.5 * (9 * t2 - 10 * t)
+    dw[..., 2] = 0.5 * (-9 * t2 + 8 * t + 1)
+    dw[..., 3] = 0.5 * (3 * t2 - 2 * t)
+    return w, dw
 
 
 class TileCache:

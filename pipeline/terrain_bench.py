@@ -1,0 +1,150 @@
+"""Terrain speed and memory, measured (for `just bench`): `run()` returns the results as the
+bench's records (name, value, unit, target, at_least, ok, note); `python -m pipeline.terrain_bench`
+prints them.
+
+- build: the truth terrain of the synthetic catalogue (Robbins 2018 law, D 1-300 km, 1.3 M
+  craters) on the synthetic base;
+- render: the elevations of a 1024 x 1024 image's rays (nadir, 45 deg field of view, each ray at
+  its ground resolution = range x IFOV) from 100 km, 20 km, 2 km and 200 m: cold (tiles made)
+  and warm (cached), and the tiles that held;
+- altimeter: a 600 s descent (15 km to the ground, 1.7 km/s to 0 along track, nadir beam at
+  100 Hz, each sample at resolution clip(range x 1 mrad, 1 m)): all 60,000 beams in one call,
+  in blocks of 100 (one per second) and one at a time;
+- memory: 1 m tiles over a 2 km x 2 km site, and the descent's query footprint.
+The landing target: the terrain's share of a ~60 s `landing` run at most 20 % (12 s).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from pipeline.core.body.synthetic import generate_catalogue
+from pipeline.core.body.terrain import Terrain, TerrainOptions
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.math.frames import unit_mcmf_from_latlon
+
+Result = dict[str, Any]
+SITE_LAT_DEG, SITE_LON_DEG = 0.0, 0.0
+FOV_RAD = np.radians(45.0)
+
+
+def _result(name: str, value: float, unit: str, target: float | None = None,
+            note: str = "") -> Result:
+    ok = None if target is None else bool(value <= target)
+    return {"name": name, "value": float(value), "unit": unit, "target": target,
+            "at_least": False, "ok": ok, "note": note}
+
+
+def truth_terrain(seed: int = 0, cache_mib: float = 4096.0) -> tuple[Terrain, float]:
+    """The benchmark's truth terrain and its build time (s)."""
+    rng = np.random.default_rng(2018)
+    lat, lon, diam_km = generate_catalogue(rng, 1.0, 300.0)
+    c = MOON_RADIUS_M * unit_mcmf_from_latlon(lat, lon)
+    t0 = time.perf_counter()
+    terrain = Terrain.build(TerrainOptions(seed=seed, cache_mib=cache_mib), c, diam_km * 1e3)
+    return terrain, time.perf_counter() - t0
+
+
+def _site_frame() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    up = unit_mcmf_from_latlon(np.radians(SITE_LAT_DEG), np.radians(SITE_LON_DEG))
+    east = np.cross([0.0, 0.0, 1.0], up)
+    east /= np.linalg.norm(east)
+    return up, east, np.cross(up, east)
+
+
+def image_rays(alt_m: float, width_px: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A nadir pinhole camera alt_m over the site's sphere point: origin (3,), unit rays
+    (W^2, 3), per-ray resolution (m) = the range to level ground x IFOV."""
+    up, east, north = _site_frame()
+    s = (np.arange(width_px) + 0.5) / width_px * 2.0 - 1.0
+    a, b = np.meshgrid(s * np.tan(FOV_RAD / 2), s * np.tan(FOV_RAD / 2))
+    d = -up + a.reshape(-1, 1) * east + b.reshape(-1, 1) * north
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    origin = up * (MOON_RADIUS_M + alt_m)
+    cos_e = -(d @ up)
+    res = alt_m / np.maximum(cos_e, 0.1) * FOV_RAD / width_px / np.maximum(cos_e, 0.1)
+    return origin, d, res
+
+
+def descent(ground_m: float = 0.0, rate_hz: float = 100.0, duration_s: float = 600.0
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (N, 3) m MCMF of a 600 s descent ending 30 m over the site (whose ground is
+    ground_m over the sphere) and nadir beams (N, 3)."""
+    up, east, _ = _site_frame()
+    t = np.arange(0.0, duration_s, 1.0 / rate_hz)
+    x = -1700.0 * (duration_s * (1 - t / duration_s) ** 2 / 2)  # v = 1700 (1 - t / T), m
+    alt = 15e3 * (1 - t / duration_s) ** 2 + 30.0 + ground_m
+    ang = x / MOON_RADIUS_M
+    u = np.cos(ang)[:, None] * up + np.sin(ang)[:, None] * east
+    return u * (MOON_RADIUS_M + alt)[:, None], -u
+
+
+def _timed(fn) -> tuple[Any, float]:
+    t0 = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t0
+
+
+def run(quick: bool = False) -> list[Result]:
+    """The measurements (module docstring); `quick`: a 256 px image, 60 s of descent."""
+    out: list[Result] = []
+    terrain, build_s = truth_terrain()
+    out.append(_result("terrain build (1.3 M craters, synthetic base)", build_s, "s"))
+    width = 256 if quick else 1024
+    up = _site_frame()[0]
+    ground = float(terrain.height_m(up, 10.0))  # the site's ground over the sphere
+    out.append(_result("site ground over the reference sphere", ground, "m"))
+    for alt in (100e3, 20e3, 2e3, 200.0):
+        origin, d, res = image_rays(alt + ground, width)
+        res = res * alt / (alt + ground)
+        made = terrain.cache.made
+        t_cold, cold_s = _timed(lambda o=origin, d=d, r=res: terrain.intersect(
+            np.broadcast_to(o, d.shape), d, r))
+        tiles_made = terrain.cache.made - made
+        _, warm_s = _timed(lambda o=origin, d=d, r=res: terrain.intersect(
+            np.broadcast_to(o, d.shape), d, r))
+        note = (f"{tiles_made} tiles made; ray resolution {res.min():.2g}-{res.max():.2g} m; "
+                f"{int(np.isnan(t_cold).sum())} misses")
+        out.append(_result(f"render rays {width}^2 from {alt / 1e3:g} km, cold", cold_s, "s",
+                           note=note))
+        out.append(_result(f"render rays {width}^2 from {alt / 1e3:g} km, warm", warm_s, "s"))
+    r, b = descent(ground, duration_s=60.0 if quick else 600.0)
+    alt = np.linalg.norm(r, axis=1) - MOON_RADIUS_M - ground
+    res = np.maximum(alt * 1e-3, 1.0)
+    alt_terrain = Terrain(terrain._gen)  # a fresh cache: the descent's own footprint
+    rho, all_s = _timed(lambda: alt_terrain.intersect(r, b, res))
+    out.append(_result(f"altimeter {r.shape[0]} beams at 100 Hz, one call (cold)", all_s, "s",
+                       note=f"{alt_terrain.cache.made} tiles made"))
+    out.append(_result("descent footprint memory (altimeter tiles)",
+                       alt_terrain.memory_bytes / 2**20, "MiB"))
+    blocks = Terrain(terrain._gen)
+    _, block_s = _timed(lambda: [blocks.intersect(r[k:k + 100], b[k:k + 100], res[k:k + 100])
+                                 for k in range(0, r.shape[0], 100)])
+    out.append(_result(f"altimeter {r.shape[0]} beams in blocks of 100 (cold)", block_s, "s"))
+    _, warm_s = _timed(lambda: [blocks.intersect(r[k:k + 100], b[k:k + 100], res[k:k + 100])
+                                for k in range(0, r.shape[0], 100)])
+    out.append(_result(f"altimeter {r.shape[0]} beams in blocks of 100 (warm)", warm_s, "s"))
+    single = range(0, r.shape[0], max(r.shape[0] // 300, 1))
+    _, one_s = _timed(lambda: [blocks.intersect(r[k], b[k], res[k]) for k in single])
+    out.append(_result("altimeter one beam per call (warm), per beam", one_s / len(single) * 1e3,
+                       "ms", note=f"x 60,000 beams = {one_s / len(single) * 6e4:.0f} s"))
+    assert np.all(np.isfinite(rho))
+    # memory of 1 m tiles over the 2 km x 2 km site
+    site = Terrain(terrain._gen)
+    _, east, north = _site_frame()
+    g = np.arange(-1000.0, 1000.1, 20.0 if not quick else 100.0)
+    ge, gn = np.meshgrid(g, g)
+    p = MOON_RADIUS_M * up + ge.reshape(-1, 1) * east + gn.reshape(-1, 1) * north
+    _, site_s = _timed(lambda: site.height_m(p / np.linalg.norm(p, axis=1, keepdims=True), 1.0))
+    out.append(_result("1 m tiles over 2 km x 2 km: memory", site.memory_bytes / 2**20, "MiB",
+                       note=f"{site.cache.resident} tiles of {site.cache.tile_bytes} B, "
+                            f"made in {site_s:.1f} s"))
+    return out
+
+
+if __name__ == "__main__":
+    for rec in run():
+        print(f"{rec['name']:<58} {rec['value']:10.3f} {rec['unit']:<4} {rec['note']}")
