@@ -44,7 +44,7 @@ from pipeline.core.body.terrain_fields import (
     BaseField,
     CraterField,
     LatLonGrid,
-    crater_rim_height_m,
+    crater_depth_rim_m,
     lowpass_grid,
     node_blocks,
     synthetic_base_grid,
@@ -369,8 +369,9 @@ class Terrain:
     def rim_height_m(self, diam_m: np.ndarray, depth_scale: np.ndarray | float = 1.0
                      ) -> np.ndarray:
         """The profile's rim height (m) above the surroundings (no base, no neighbours)."""
-        return crater_rim_height_m(np.asarray(diam_m, float), np.asarray(depth_scale, float),
-                                   self.opts.floor_fraction)
+        d = np.asarray(diam_m, float)
+        return crater_depth_rim_m(d, np.broadcast_to(np.asarray(depth_scale, float), d.shape),
+                                  self.opts.floor_fraction)[1]
 
     @property
     def memory_bytes(self) -> int:

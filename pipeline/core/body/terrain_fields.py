@@ -29,28 +29,35 @@ import numpy as np
 from scipy import ndimage
 
 from pipeline.core.math import tiling
-from pipeline.core.sensors.render import crater_profile, crater_shapes
 
 LOLA_CL_AMPLITUDE_M2 = 4.3e6  # degree variance fit C_l = A l^-beta to the LOLA DEM (l = 5-250)
 LOLA_CL_SLOPE = 2.14
 _PAD = 8  # spline padding (cells): the prefilter decays 0.27^8 ~ 3e-5 over it
 
 
+def _profiles():
+    """The profile functions: today the renderer's (imported here, not at the top, so that the
+    renderer can draw this terrain without an import cycle); `body.crater_shape` plugs in here."""
+    from pipeline.core.sensors import render
+
+    return render.crater_shapes, render.crater_profile
+
+
+def crater_depth_rim_m(diam_m: np.ndarray, depth_scale: np.ndarray, floor_fraction: float
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Depth rim-to-floor (m), rim height above the surroundings (m) and floor fraction of
+    craters of diameter diam_m, depth and rim scaled by depth_scale (degradation; 1 = fresh)."""
+    shapes = _profiles()[0](diam_m, floor_fraction)
+    return shapes.depth_m * depth_scale, shapes.rim_height_m * depth_scale, shapes.floor_fraction
+
+
 def crater_relief_m(rho: np.ndarray, diam_m: np.ndarray, depth_scale: np.ndarray,
                     floor_fraction: float, ejecta_extent: float) -> np.ndarray:
     """Height (m) above the surroundings at normalised distance rho = r / R of craters of
     diameter diam_m with their depth and rim scaled by depth_scale (degradation; 1 = fresh).
-    The adapter to the profiles: today `render.crater_shapes` / `crater_profile` (Pike 1977);
-    the degradation-aware profiles of `body.crater_shape` plug in here."""
-    shapes = crater_shapes(diam_m, floor_fraction)
-    return crater_profile(rho, shapes.depth_m * depth_scale, shapes.rim_height_m * depth_scale,
-                          shapes.floor_fraction, ejecta_extent)
-
-
-def crater_rim_height_m(diam_m: np.ndarray, depth_scale: np.ndarray, floor_fraction: float
-                        ) -> np.ndarray:
-    """Rim height (m) above the surroundings (the profile at rho = 1)."""
-    return crater_shapes(diam_m, floor_fraction).rim_height_m * depth_scale
+    The one adapter to the profiles (Pike 1977; `_profiles`)."""
+    depth, rim, floor = crater_depth_rim_m(diam_m, depth_scale, floor_fraction)
+    return _profiles()[1](rho, depth, rim, floor, ejecta_extent)
 
 
 # --- base -----------------------------------------------------------------------------------------
@@ -171,9 +178,8 @@ class CraterField:
         if not self.diam_m.size:
             self.rim_max_m = self.depth_max_m = 0.0
             return
-        shapes = crater_shapes(self.diam_m, floor_fraction)
-        self.rim_max_m = float(np.max(shapes.rim_height_m * self.depth_scale))
-        self.depth_max_m = float(np.max(shapes.depth_m * self.depth_scale))
+        depth, rim, _ = crater_depth_rim_m(self.diam_m, self.depth_scale, floor_fraction)
+        self.rim_max_m, self.depth_max_m = float(rim.max()), float(depth.max())
         k = np.floor(np.log2(self.diam_m)).astype(np.int64)
         for kv in np.unique(k):
             rows = np.flatnonzero(k == kv)
