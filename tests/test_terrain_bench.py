@@ -15,5 +15,5 @@ def test_terrain_bench_quick():
     site = records["1 m tiles over 2 km x 2 km: memory"]
     # 1 m: order 15 (0.85 m cells, 54 m tiles): ~37^2 tiles of 17,956 B over 2 km x 2 km
     assert 15.0 < site["value"] < 40.0
-    assert any(name.startswith("render rays") and "0 misses" in r["note"]
-               for name, r in records.items())
+    casts = [r for name, r in records.items() if name.startswith("ray casts")]
+    assert len(casts) == 4 and all(" 0 misses" in r["note"] for r in casts)

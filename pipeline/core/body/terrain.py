@@ -139,10 +139,10 @@ class _Generator:
         resid = np.sum(np.where(lam < cut, self.noise.amplitude_m, 0.0), axis=-1)
         return 0.11 * self.opts.min_crater_cells * delta + 1.1 * resid
 
-    def _stride(self, scale_m: float, delta: float) -> int:
+    def _stride(self, scale_m: float, delta: float, nodes: float) -> int:
         """The coarsest lattice stride (a power of 2 <= cells) that still samples a component
-        smooth over scale_m with 8 nodes (Catmull-Rom error ~1 %)."""
-        k = int(2 ** np.floor(np.log2(max(scale_m / (8.0 * delta), 1.0))))
+        smooth over scale_m with `nodes` nodes (Catmull-Rom error ~2 % at 4, ~0.2 % at 8)."""
+        k = int(2 ** np.floor(np.log2(max(scale_m / (nodes * delta), 1.0))))
         return min(k, self.opts.tile_cells)
 
     def heights_at(self, pts: np.ndarray, order: np.ndarray) -> np.ndarray:
@@ -181,8 +181,8 @@ class _Generator:
             delta = float(self.spacing_m(key >> 56))
             octaves: dict[int, list[float]] = {}  # stride -> the wavelengths sampled at it
             for lam_k in lam[lam >= self.opts.roughness_min_cells * delta]:
-                octaves.setdefault(self._stride(lam_k, delta), []).append(float(lam_k))
-            kb = self._stride(self.base.smooth_m, delta) if self.base is not None else -1
+                octaves.setdefault(self._stride(lam_k, delta, 4.0), []).append(float(lam_k))
+            kb = self._stride(self.base.smooth_m, delta, 8.0) if self.base is not None else -1
             h = np.zeros((side, side))
             for k in set(octaves) | ({kb} - {-1}):
                 pts = nodes if k == 1 else tiles.sub_lattice(key, n, k)
