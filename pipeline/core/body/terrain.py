@@ -126,6 +126,7 @@ class _Generator:
         self.bottom_m = (base.min_m if base else 0.0) - craters.depth_max_m - relief
         self.max_order = int(tiles.order_for(opts.finest_resolution_m, opts.tile_cells,
                                              opts.radius_m, 0, tiles.MAX_ORDER))
+        self._margins = self._margin_table()
 
     def spacing_m(self, order: np.ndarray | int) -> np.ndarray:
         return tiles.spacing_m(order, self.opts.tile_cells, self.opts.radius_m)
@@ -133,10 +134,13 @@ class _Generator:
     def margin_m(self, order: np.ndarray) -> np.ndarray:
         """Bound (m) of how far the finest terrain rises above level `order`'s: craters too
         small for it (rims <= 0.036 D, two stacked) and its missing roughness octaves."""
-        delta = self.spacing_m(order)
+        return self._margins[order]
+
+    def _margin_table(self) -> np.ndarray:
+        delta = self.spacing_m(np.arange(tiles.MAX_ORDER + 1))
         lam = self.noise.wavelength_m
-        cut = self.opts.roughness_min_cells * delta[..., None]
-        resid = np.sum(np.where(lam < cut, self.noise.amplitude_m, 0.0), axis=-1)
+        cut = self.opts.roughness_min_cells * delta[:, None]
+        resid = np.sum(np.where(lam[None, :] < cut, self.noise.amplitude_m[None, :], 0.0), 1)
         return 0.11 * self.opts.min_crater_cells * delta + 1.1 * resid
 
     def _stride(self, scale_m: float, delta: float, nodes: float) -> int:
