@@ -138,10 +138,8 @@ class _Generator:
 
     def _margin_table(self) -> np.ndarray:
         delta = self.spacing_m(np.arange(tiles.MAX_ORDER + 1))
-        lam = self.noise.wavelength_m
-        cut = self.opts.roughness_min_cells * delta[:, None]
-        resid = np.sum(np.where(lam[None, :] < cut, self.noise.amplitude_m[None, :], 0.0), 1)
-        return 0.11 * self.opts.min_crater_cells * delta + 1.1 * resid
+        resid = [self.noise.residual_bound_m(self.opts.roughness_min_cells * d) for d in delta]
+        return 0.11 * self.opts.min_crater_cells * delta + 1.1 * np.asarray(resid)
 
     def _stride(self, scale_m: float, delta: float, nodes: float) -> int:
         """The coarsest lattice stride (a power of 2 <= cells) that still samples a component
