@@ -133,6 +133,9 @@ def test_same_seed_same_tile_and_no_seams():
     key = tiles.tile_key(10, int(f), int(x * 1024), int(y * 1024))
     ta = a._gen.make(np.array([key]))
     assert np.array_equal(ta, b._gen.make(np.array([key])))
+    batch = np.array([key, key + (1 << 26), key + 1, key + (3 << 26) + 2])  # neighbours
+    assert np.array_equal(a._gen.make(batch), np.concatenate([b._gen.make(batch[i:i + 1])
+                                                              for i in range(4)]))
     other = Terrain.build(TerrainOptions(seed=8, base_fwhm_km=200.0), c, dm)
     assert np.abs(other._gen.make(np.array([key])) - ta).max() > 1.0
     # the edge between tiles (ix, iy) and (ix + 1, iy) at order 10: from either side heights and

@@ -15,9 +15,10 @@ the row before it, half a turn away) and around in longitude. Two sources:
 Craters: each catalogue crater's profile (Pike 1977 fresh-crater morphometry and the ejecta
 taper, through `crater_relief_m`, the one adapter to the profile functions) over its footprint
 (ejecta_extent radii), at horizontal distance = great-circle arc from the centre, summed. Craters
-are indexed by size class (diameter octaves) on HEALPix tiles (`tiling.TileIndex`); a tile asks
-for the craters whose footprint reaches it and that are at least `min_cells` samples across, and
-stamps them by blocks of 8 x 8 nodes (only the blocks a footprint reaches).
+are indexed by size class (diameter octaves, a k-d tree of unit vectors each); the tiles made
+together ask once per class for the craters whose footprint reaches them and that are at least
+`min_cells` samples across, and each stamps its own by blocks of 8 x 8 nodes (only the blocks a
+footprint reaches).
 """
 
 from __future__ import annotations
@@ -27,8 +28,7 @@ from dataclasses import dataclass
 import healpy as hp
 import numpy as np
 from scipy import ndimage
-
-from pipeline.core.math import tiling
+from scipy.spatial import cKDTree
 
 LOLA_CL_AMPLITUDE_M2 = 4.3e6  # degree variance fit C_l = A l^-beta to the LOLA DEM (l = 5-250)
 LOLA_CL_SLOPE = 2.14
@@ -156,8 +156,8 @@ class BaseField:
 
 @dataclass(frozen=True)
 class _SizeClass:
-    index: tiling.TileIndex
-    rows: np.ndarray  # crater rows (into CraterField arrays) in index order
+    tree: cKDTree  # over the class's unit vectors
+    rows: np.ndarray  # crater rows (into CraterField arrays) in tree order
     diam_max_m: float
 
 
@@ -183,42 +183,61 @@ class CraterField:
         k = np.floor(np.log2(self.diam_m)).astype(np.int64)
         for kv in np.unique(k):
             rows = np.flatnonzero(k == kv)
-            reach = ejecta_extent * 2.0 ** (kv + 1) / 2.0
-            # cells about as wide as a footprint (HEALPix order 0..8: the index holds 12 4^o + 1
-            # tile starts)
-            order = int(np.clip(np.floor(np.log2(radius_m * 1.02 / reach)), 0, 8))
-            tiles = tiling.tile_of(self.u[rows], order)
-            srt = np.argsort(tiles, kind="stable")
-            self.classes.append(_SizeClass(
-                tiling.TileIndex.build(self.u[rows[srt]], tiles[srt], order), rows[srt],
-                float(self.diam_m[rows].max())))
+            self.classes.append(_SizeClass(cKDTree(self.u[rows]), rows,
+                                           float(self.diam_m[rows].max())))
 
-    def near(self, centre: np.ndarray, radius_rad: float, min_diam_m: float) -> np.ndarray:
-        """Rows of the craters of diameter >= min_diam_m whose footprint comes within
-        radius_rad of the unit vector centre."""
-        out = []
+    def near(self, centre: np.ndarray, radius_rad: np.ndarray, min_diam_m: np.ndarray
+             ) -> list[np.ndarray]:
+        """For each cap (unit centres (T, 3), radii (T,) rad), the rows (ascending) of the
+        craters of diameter >= min_diam_m (T,) whose footprint comes within it: one k-d tree
+        query per size class for all caps."""
+        centre = np.atleast_2d(centre)
+        radius_rad = np.broadcast_to(radius_rad, centre.shape[:1])
+        min_diam_m = np.broadcast_to(min_diam_m, centre.shape[:1])
+        found: list[list[np.ndarray]] = [[] for _ in range(centre.shape[0])]
         for c in self.classes:
-            if c.diam_max_m < min_diam_m:
+            ask = np.flatnonzero(c.diam_max_m >= min_diam_m)
+            if not ask.size:
                 continue
-            reach = self.extent * c.diam_max_m / 2.0 / self.radius_m
-            hit = tiling.query_cap(c.index, centre, radius_rad + reach)
-            rows = c.rows[hit]
-            ang = np.arccos(np.clip(self.u[rows] @ centre, -1.0, 1.0))
-            keep = ((ang <= radius_rad + self.extent * self.diam_m[rows] / 2.0 / self.radius_m)
-                    & (self.diam_m[rows] >= min_diam_m))
-            out.append(rows[keep])
-        return np.concatenate(out) if out else np.empty(0, np.int64)
+            ang = np.minimum(radius_rad[ask] + self.extent * c.diam_max_m / 2 / self.radius_m,
+                             np.pi)
+            hits = c.tree.query_ball_point(centre[ask], 2.0 * np.sin(ang / 2.0))
+            for i, hit in zip(ask.tolist(), hits, strict=True):
+                if hit:
+                    found[i].append(c.rows[np.asarray(hit, dtype=np.int64)])
+        out = []
+        for i, parts in enumerate(found):
+            rows = np.sort(np.concatenate(parts)) if parts else np.empty(0, np.int64)
+            ang = np.arccos(np.clip(self.u[rows] @ centre[i], -1.0, 1.0))
+            reach = self.extent * self.diam_m[rows] / 2.0 / self.radius_m
+            out.append(rows[(ang <= radius_rad[i] + reach)
+                            & (self.diam_m[rows] >= min_diam_m[i])])
+        return out
 
-    def relief_m(self, nodes: np.ndarray, blocks: np.ndarray, min_diam_m: float) -> np.ndarray:
+    def relief_many_m(self, nodes: np.ndarray, blocks: np.ndarray, min_diam_m: np.ndarray
+                      ) -> np.ndarray:
+        """`relief_m` of several node sets (T, M, 3) at once (one crater query for all)."""
+        centre = nodes.mean(axis=1)
+        centre /= np.linalg.norm(centre, axis=1, keepdims=True)
+        rad = np.arccos(np.clip(np.einsum("tmi,ti->tm", nodes, centre), -1, 1)).max(axis=1)
+        rows = self.near(centre, rad, min_diam_m) if self.diam_m.size else [
+            np.empty(0, np.int64)] * nodes.shape[0]
+        return np.stack([self.relief_m(nodes[i], blocks, float(min_diam_m[i]), rows[i])
+                         for i in range(nodes.shape[0])])
+
+    def relief_m(self, nodes: np.ndarray, blocks: np.ndarray, min_diam_m: float,
+                 rows: np.ndarray | None = None) -> np.ndarray:
         """Summed crater heights (m) at unit vectors `nodes` (M, 3), grouped in `blocks`
-        (B, 64) of node indices (M: padding), craters >= min_diam_m across."""
+        (B, k) of node indices (M: padding), craters >= min_diam_m across (`rows`: the
+        candidates, if known)."""
         out = np.zeros(nodes.shape[0] + 1)
         if not self.diam_m.size:
             return out[:-1]
-        centre = nodes.mean(axis=0)
-        centre /= np.linalg.norm(centre)
-        rad = float(np.arccos(np.clip(nodes @ centre, -1, 1)).max())
-        rows = self.near(centre, rad, min_diam_m)
+        if rows is None:
+            centre = nodes.mean(axis=0)
+            centre /= np.linalg.norm(centre)
+            rad = float(np.arccos(np.clip(nodes @ centre, -1, 1)).max())
+            rows = self.near(centre, np.array([rad]), np.array([min_diam_m]))[0]
         if not rows.size:
             return out[:-1]
         padded = np.concatenate([nodes, nodes[:1]])

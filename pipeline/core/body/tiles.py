@@ -125,24 +125,31 @@ def nested_pixel(key: int) -> tuple[int, int]:
     return order, face * 4**order + pix
 
 
-def tile_nodes(key: int, cells: int) -> np.ndarray:
-    """Unit vectors (n + 3, n + 3, 3) of a tile's nodes, rows along y, columns along x."""
-    order, face, ix, iy = key_parts(key)
-    c = (np.arange(cells + 3) - 1.0) / cells
-    scale = 1.0 / (1 << order)
-    yy, xx = np.meshgrid((iy + c) * scale, (ix + c) * scale, indexing="ij")
-    return xyf2vec(xx, yy, np.full(xx.shape, face))
+def _lattice(keys: np.ndarray | int, c: np.ndarray) -> np.ndarray:
+    """Unit vectors (T, J, J, 3) (or (J, J, 3) for one int key) of tiles at the face
+    coordinates (i + c) / 2^order of their cell (i, j), c (J,) in cells of the tile's side."""
+    k = np.atleast_1d(np.asarray(keys, dtype=np.int64))
+    order, face = k >> 56, (k >> 52) & 15
+    ix, iy = (k >> 26) & ((1 << 26) - 1), k & ((1 << 26) - 1)
+    scale = 1.0 / np.left_shift(1, order).astype(float)
+    xx = ((ix[:, None] + c[None, :]) * scale[:, None])[:, None, :]
+    yy = ((iy[:, None] + c[None, :]) * scale[:, None])[:, :, None]
+    xx, yy = np.broadcast_arrays(xx, yy)
+    out = xyf2vec(xx, yy, np.broadcast_to(face[:, None, None], xx.shape))
+    return out[0] if np.ndim(keys) == 0 else out
 
 
-def sub_lattice(key: int, cells: int, stride: int) -> np.ndarray:
-    """Unit vectors (J, J, 3) of the tile's coarse lattice of the given stride (nodes at cell
+def tile_nodes(keys: np.ndarray | int, cells: int) -> np.ndarray:
+    """Unit vectors (T, n + 3, n + 3, 3) of tiles' nodes (one int key: (n + 3, n + 3, 3)),
+    rows along y, columns along x."""
+    return _lattice(keys, (np.arange(cells + 3) - 1.0) / cells)
+
+
+def sub_lattice(keys: np.ndarray | int, cells: int, stride: int) -> np.ndarray:
+    """Unit vectors (T, J, J, 3) of tiles' coarse lattice of the given stride (nodes at cell
     coordinates stride j, j = -2 .. (cells + 1) // stride + 2): a level's lattice, aligned across
     the tiles of a face, for the components smooth at that scale (`upsample_matrix`)."""
-    order, face, ix, iy = key_parts(key)
-    c = stride * np.arange(-2, (cells + 1) // stride + 3) / cells
-    scale = 1.0 / (1 << order)
-    yy, xx = np.meshgrid((iy + c) * scale, (ix + c) * scale, indexing="ij")
-    return xyf2vec(xx, yy, np.full(xx.shape, face))
+    return _lattice(keys, stride * np.arange(-2, (cells + 1) // stride + 3) / cells)
 
 
 @functools.lru_cache(maxsize=32)
