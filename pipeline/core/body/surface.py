@@ -6,11 +6,17 @@ rays (component axis last, `(N, 3)`, or one `(3,)`):
   Moon's centre;
 - `normal(u)`: the outward unit normal there;
 - `intersect(origin, direction)`: the distance (m) along unit rays to the first hit (NaN: none).
-`altitude_m(r)` is a point's height above the surface straight below it (the radial altitude).
+`altitude_m(r)` is a point's height above the surface straight below it (the radial altitude);
+`slope_deg(u)` the local slope (the normal's angle from the vertical: touchdown reports it).
+Every query takes an optional `resolution_m` (m, a scalar or one per point/ray): the ground
+resolution the caller needs (~1 m for the altimeter near the site, ~100 m for a view from
+orbit). A multi-resolution model answers at that level and generates no finer detail than
+asked; the sphere ignores it.
 
 Truth and belief stay apart: the world has one surface instance, the navigator's map another
-(equal by default). A new model (a terrain) is a new class with the same methods, registered in
-`SURFACES` under its `kind`, with its options class beside it.
+(equal by default). A new model is a new class with the same methods, registered in `SURFACES`
+under its `kind`, with its options class beside it: `Terrain` (kind "terrain", `TerrainOptions`,
+in `terrain.py`) is the second.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from typing import ClassVar, Protocol
 
 import numpy as np
 
+from pipeline.core.body.terrain import Resolution, Terrain, TerrainOptions
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors.camera import ray_sphere_distance
 
@@ -30,20 +37,25 @@ class Surface(Protocol):
     kind: ClassVar[str]
     reference_radius_m: float
 
-    def height_m(self, u_mcmf: np.ndarray) -> np.ndarray:
+    def height_m(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Height (m) above the reference sphere at unit directions u_mcmf (..., 3)."""
         ...
 
-    def normal(self, u_mcmf: np.ndarray) -> np.ndarray:
+    def normal(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Outward unit normals (..., 3) (MCMF) of the surface at unit directions u_mcmf."""
         ...
 
-    def intersect(self, origin_mcmf_m: np.ndarray, direction_mcmf: np.ndarray) -> np.ndarray:
+    def slope_deg(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
+        """Local slope (deg) at unit directions u_mcmf (..., 3)."""
+        ...
+
+    def intersect(self, origin_mcmf_m: np.ndarray, direction_mcmf: np.ndarray,
+                  resolution_m: Resolution = None) -> np.ndarray:
         """Distance (m) along unit rays (..., 3) from origins (..., 3) (MCMF, m) to the first
         surface point in front of the origin; NaN where the ray misses."""
         ...
 
-    def altitude_m(self, r_mcmf_m: np.ndarray) -> np.ndarray:
+    def altitude_m(self, r_mcmf_m: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Height (m) of points r_mcmf_m (..., 3) above the surface point below them."""
         ...
 
@@ -66,21 +78,27 @@ class Sphere:
     def from_options(cls, opts: SphereOptions) -> Sphere:
         return cls(opts.radius_m)
 
-    def height_m(self, u_mcmf: np.ndarray) -> np.ndarray:
+    def height_m(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         return np.zeros(np.shape(u_mcmf)[:-1])
 
-    def normal(self, u_mcmf: np.ndarray) -> np.ndarray:
+    def normal(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         u = np.asarray(u_mcmf, dtype=float)
         return u / np.linalg.norm(u, axis=-1, keepdims=True)
 
-    def intersect(self, origin_mcmf_m: np.ndarray, direction_mcmf: np.ndarray) -> np.ndarray:
+    def slope_deg(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
+        return np.zeros(np.shape(u_mcmf)[:-1])
+
+    def intersect(self, origin_mcmf_m: np.ndarray, direction_mcmf: np.ndarray,
+                  resolution_m: Resolution = None) -> np.ndarray:
         return ray_sphere_distance(np.asarray(origin_mcmf_m, dtype=float),
                                    np.asarray(direction_mcmf, dtype=float),
                                    self.reference_radius_m)
 
-    def altitude_m(self, r_mcmf_m: np.ndarray) -> np.ndarray:
+    def altitude_m(self, r_mcmf_m: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         return np.linalg.norm(np.asarray(r_mcmf_m, dtype=float), axis=-1) - self.reference_radius_m
 
 
-SURFACES: dict[str, type] = {Sphere.kind: Sphere}
+SURFACES: dict[str, type] = {Sphere.kind: Sphere, Terrain.kind: Terrain}
 """The surface models by kind (a new model registers here)."""
+SURFACE_OPTIONS: dict[str, type] = {Sphere.kind: SphereOptions, Terrain.kind: TerrainOptions}
+"""The options class of each kind."""
