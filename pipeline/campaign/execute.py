@@ -51,6 +51,7 @@ from typing import Any
 
 import polars as pl
 
+from pipeline.campaign.landing import touchdown_columns
 from pipeline.campaign.spec import CampaignSpec, scenario_toml
 from pipeline.config import RunConfig, load_config
 from pipeline.engine.executor import Executor
@@ -71,7 +72,8 @@ NAVIGATION_COLUMNS = ("t_s", "status", "altitude_m", *(
 # A task holds one CPU (Ray sets OMP_NUM_THREADS=1 for it): its libraries' thread pools too, so
 # that N workers on N cores do not oversubscribe them.
 ONE_THREAD = {"POLARS_MAX_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-PARTS = ("windows", "navigation", "scores")  # a run's collected tables (results/<run>.<part>)
+PARTS = ("windows", "navigation", "scores", "touchdown")  # a run's collected tables
+# (results/<run>.<part>.parquet)
 
 
 @dataclass(frozen=True)
@@ -142,6 +144,8 @@ def collect(cfg: RunConfig, store: RunStore) -> dict[str, pl.DataFrame]:
         out["scores"] = scores.join(trajectory, on="frame", how="left", maintain_order="left")
     summary = (pl.read_parquet(arts["summary.parquet"]) if "summary.parquet" in arts
                else pl.DataFrame())
+    if "touchdown.parquet" in arts:  # a closed-loop run
+        out["touchdown"] = touchdown_columns(pl.read_parquet(arts["touchdown.parquet"]))
     if "navigation.parquet" not in arts:
         return out
     nav = pl.read_parquet(arts["navigation.parquet"])

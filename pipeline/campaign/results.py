@@ -43,6 +43,8 @@ import rerun as rr
 from scipy import stats
 
 from pipeline.campaign.execute import CampaignPaths
+from pipeline.campaign.landing import FIGURE as LANDING_FIGURE
+from pipeline.campaign.landing import landing_section
 from pipeline.campaign.spec import CampaignSpec
 from pipeline.config import load_config
 from pipeline.io.rrd import recording_file
@@ -87,6 +89,9 @@ def collect_results(spec: CampaignSpec, paths: CampaignPaths) -> Collected:
                               **_draw_columns(meta["draws"]), "status": meta["status"],
                               "error": meta["error"], "wall_s": meta["wall_s"],
                               "node": meta["node"]}], infer_schema_length=None)
+        t_path = paths.part(rid, "touchdown")
+        if t_path.is_file() and pq.read_metadata(t_path).num_rows:
+            head = pl.concat([head, pl.read_parquet(t_path)], how="horizontal")
         w_path = paths.part(rid, "windows")
         windows = pl.read_parquet(w_path) if w_path.is_file() else pl.DataFrame()
         if windows.height:
@@ -299,8 +304,8 @@ def log_envelopes(path: Path, name: str, env: pl.DataFrame) -> None:
                 rec.log(path_, rr.SeriesLines(names=label), static=True)
 
 
-OUTPUTS = ("campaign.parquet", "campaign.duckdb", "campaign.rrd", "envelope_time.png",
-           "envelope_altitude.png", "nees.png", "report.md", "campaign.json")
+OUTPUTS = ("campaign.parquet", "campaign.duckdb", "campaign.rrd", LANDING_FIGURE,
+           "envelope_time.png", "envelope_altitude.png", "nees.png", "report.md", "campaign.json")
 
 
 def write_outputs(spec: CampaignSpec, paths: CampaignPaths,
@@ -319,8 +324,11 @@ def write_outputs(spec: CampaignSpec, paths: CampaignPaths,
         if env.height:
             log_envelopes(stage / "campaign.rrd", spec.name, env)
         figures = _figures(env, stage)
+        per_run_table = (collected.campaign.unique("run", keep="first", maintain_order=True)
+                         if collected.campaign.height else collected.campaign)
+        landing = landing_section(per_run_table, stage)
         (stage / "report.md").write_text(_report(spec, paths, collected.campaign, env, figures,
-                                                 execution))
+                                                 execution, landing))
         per_run = collected.campaign.unique("run", keep="first", maintain_order=True) \
             if collected.campaign.height else collected.campaign
         ok = int((per_run["status"] == "ok").sum()) if per_run.height else 0
@@ -377,7 +385,7 @@ def _envelope_table(env: pl.DataFrame) -> pl.DataFrame:
 
 
 def _report(spec: CampaignSpec, paths: CampaignPaths, table: pl.DataFrame, env: pl.DataFrame,
-            figures: list[str], execution: dict[str, Any] | None) -> str:
+            figures: list[str], execution: dict[str, Any] | None, landing: str = "") -> str:
     per_run = table.unique("run", keep="first", maintain_order=True) if table.height else table
     n = per_run.height
     lines = [f"# Campaign `{spec.name}`", "",
@@ -410,6 +418,8 @@ def _report(spec: CampaignSpec, paths: CampaignPaths, table: pl.DataFrame, env: 
                 "grid": lambda d: f"grid over {list(d.values)}"}[d.kind](d)
         lines.append(f"- `{d.key}`: {what}")
     lines.append("")
+    if landing:
+        lines += [landing, ""]
     if env.height:
         lines += ["## Error envelopes over the runs", "",
                   "Per source (the filter; each estimator on its `ok` frames) and record: the "

@@ -397,7 +397,8 @@ def _check_base(base: str, overrides: dict[str, Any], dispersed: set[str],
                           f"detection.sensor = \"physical\" (the base and overrides give "
                           f"{d.sensor!r}: the paper's camera is the body frame)")
     sigmas = ("catalogue_sigma_horizontal_m", "catalogue_sigma_height_m",
-              "catalogue_sigma_diameter_share")
+              "catalogue_sigma_diameter_share", "site_map_sigma_horizontal_m",
+              "site_map_sigma_height_m", "site_map_relative_sigma_m")
     if flags["catalogue_errors"] and not (physical and (
             any(getattr(d, k) > 0 for k in sigmas)
             or any(f"detection.{k}" in dispersed for k in sigmas))):

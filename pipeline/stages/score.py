@@ -32,6 +32,13 @@ from pipeline.ops.score import (
 from pipeline.viz.draw.score import record_score
 
 RENDER_INPUTS = ("render.json", "detection_recall.parquet", "images.parquet")  # the report's
+FLIGHT_INPUTS = ("touchdown.parquet", "guidance.parquet")  # the closed loop's, for the report
+
+
+def optional_inputs(cfg: RunConfig) -> tuple[str, ...]:
+    """The report's optional inputs: the rendering's, the closed loop's."""
+    return ((RENDER_INPUTS if cfg.render.enabled else ())
+            + (FLIGHT_INPUTS if cfg.flight.closed_loop else ()))
 
 
 def catalogue_lookup(db_path: Path) -> CraterLookup:
@@ -149,14 +156,29 @@ def headline(cfg: RunConfig, store: RunStore) -> str:
             f"{row['share_correct']:.2%} of the real detections right, {row['wrong']:,} wrong "
             f"({row['share_wrong']:.3%} of the identified), {row['share_frames_with_fix']:.0%} "
             f"of frames fixed, {row['median_ms']:.1f} ms per frame")
+    if cfg.flight.closed_loop:
+        lines.append(landing_line(pl.read_parquet(store.path("touchdown.parquet"))))
     lines.append(f"look at it: just view {store.run_id}")
     return "\n".join(lines)
+
+
+def landing_line(touchdown: pl.DataFrame) -> str:
+    """The headline's touchdown: status, miss and its split, speeds, propellant left."""
+    t = touchdown.row(0, named=True)
+    if not np.isfinite(t["t_s"]):
+        return f"  landing: {t['status']} ({t['reason']})"
+    return (f"  landing: {t['status']} at {t['t_s']:.1f} s, {t['miss_m']:.2f} m from the site "
+            f"({t['miss_downrange_m']:+.2f} m downrange, {t['miss_crossrange_m']:+.2f} m "
+            f"crossrange; knowledge error {t['knowledge_error_m']:.2f} m, flight-technical "
+            f"{t['fte_m']:.2f} m); touchdown {t['vertical_speed_m_s']:.2f} m/s down, "
+            f"{t['horizontal_speed_m_s']:.2f} m/s across, tilt {t['tilt_deg']:.1f} deg, slope "
+            f"{t['slope_deg']:.1f} deg; {t['propellant_left_kg']:.1f} kg of propellant left")
 
 
 STAGE = Stage(
     name="score",
     doc="errors, Cramér-Rao bound, NEES, windows, figures, report.md",
-    reads=("scoring", "detection", "identification", "render"),
+    reads=("scoring", "detection", "identification", "render", "flight.closed_loop"),
     inputs=("trajectory.parquet", "trajectory.json", "catalogue.json", "detections.parquet",
             "frames.parquet", "estimates.parquet", "navigation.parquet"),
     outputs=("scores.parquet", "summary.parquet", "by_craters_used.parquet",
@@ -167,8 +189,8 @@ STAGE = Stage(
                   "estimation.methods", "imu.grade", "imu.rate_hz", "navigation"),
     record=record_score,
     visual_code=("pipeline.viz.draw.score",),
-    optional_inputs=RENDER_INPUTS,
-    uses_optional=lambda cfg: RENDER_INPUTS if cfg.render.enabled else (),
+    optional_inputs=RENDER_INPUTS + FLIGHT_INPUTS,
+    uses_optional=optional_inputs,
     run=run,
     verify=lambda ctx: check_catalogue_unchanged(ctx.input("catalogue.json")),
 )

@@ -22,6 +22,9 @@ def record_score(ctx: Drawing) -> None:
         rendering = (json.loads(ctx.artifact("render.json").read_text()),
                      table(ctx, "detection_recall.parquet"), table(ctx, "images.parquet"))
     facts = json.loads(ctx.artifact("trajectory.json").read_text())
+    flight = None
+    if cfg.flight.closed_loop:
+        flight = (table(ctx, "touchdown.parquet"), table(ctx, "guidance.parquet"))
     run_report.write_run_report(
         ctx, cfg, ctx.store.run_id, table(ctx, "trajectory.parquet"),
         table(ctx, "frames.parquet"), scores, table(ctx, "summary.parquet"),
@@ -30,4 +33,4 @@ def record_score(ctx: Drawing) -> None:
         nav_summary=table(ctx, "navigation_summary.parquet"),
         identification=table(ctx, "identification.parquet"),
         by_detections=identification_by_detections(table(ctx, "frames.parquet")),
-        rendering=rendering)
+        rendering=rendering, flight=flight)

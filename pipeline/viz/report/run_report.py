@@ -14,6 +14,7 @@ from pipeline.ops.score import by_craters_used
 from pipeline.studies import Study
 from pipeline.viz.report.base import STUDY
 from pipeline.viz.report.figures import fig_counts, fig_craters_used, fig_errors, fig_navigation
+from pipeline.viz.report.landing import fig_flight, landing_section
 from pipeline.viz.report.md_tables import craters_used_table, crlb_table, window_table
 from pipeline.viz.report.sections import (
     identification_section,
@@ -62,13 +63,15 @@ def write_run_report(tx, cfg: RunConfig, run_id: str, trajectory: pl.DataFrame,
                      nav_summary: pl.DataFrame | None = None,
                      identification: pl.DataFrame | None = None,
                      by_detections: pl.DataFrame | None = None,
-                     rendering: tuple[dict, pl.DataFrame, pl.DataFrame] | None = None) -> None:
+                     rendering: tuple[dict, pl.DataFrame, pl.DataFrame] | None = None,
+                     flight: tuple[pl.DataFrame, pl.DataFrame] | None = None) -> None:
     """report.md and its figures, written through the stage transaction (`tx.output(name)`
     gives the path to write `name` to). `by_used` is `by_craters_used(scores)` (computed here
     when not given); `navigation` and `nav_summary` (the filter's table and
     `summarize_navigation`) add the navigation section; `identification` and `by_detections`
     (`summarize_identification`, `identification_by_detections`) the identification section;
-    `rendering` (the render stage's facts, recall and images tables) the rendering section.
+    `rendering` (the render stage's facts, recall and images tables) the rendering section;
+    `flight` (the closed loop's touchdown and guidance tables) the landing section.
     With visuals off (`pipeline.io.rrd.visuals_enabled`) no figure is drawn."""
     d = cfg.detection
     cap = "no limit" if d.max_craters is None else f"{d.max_craters} ({d.selection})"
@@ -130,6 +133,12 @@ seconds before impact); here each bin of craters used stands alone. Cells: RMSE 
         text += identification_section(cfg, identification, by_detections)
     if rendering is not None:
         text += rendering_section(*rendering)
+    if flight is not None:
+        if figures:
+            fig_flight(flight[1], tx.output("fig_flight.png"),
+                       f"The closed loop's descent ({run_id})")
+        text = text.replace("## Craters in view", landing_section(*flight)
+                            + "## Craters in view", 1)
     if not figures:  # a campaign's run: the tables alone
         text = re.sub(r"^!\[[^\]]*\]\([^)]*\.png\)\n\n?", "", text, flags=re.MULTILINE)
         text = text.replace("\n\n", "\n\n_Figures off (`CRATER_NAV_VISUALS=off`: a campaign's "
