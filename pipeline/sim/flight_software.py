@@ -41,6 +41,7 @@ class FlightSoftware:
         self.sensors, self.guidance_input = sensors, guidance_input
         self.imu = filter.ImuSamples(dt_s, np.zeros((n_steps, 3)), np.zeros((n_steps, 3)), 0.0)
         self.thrust_cmd_n = 0.0
+        self._nominal: tuple[object, NavState, float] | None = None  # (tracker, state, time)
 
     # --- sensors in ---------------------------------------------------------------------------
 
@@ -71,14 +72,26 @@ class FlightSoftware:
 
     # --- guidance out -------------------------------------------------------------------------
 
-    def estimate(self) -> NavState | None:
+    def estimate(self, t_s: float | None = None) -> NavState | None:
+        """The navigated state: the filter's, extrapolated on the IMU to t_s (s) when given
+        (the nominal alone, incrementally from the last extrapolation of the same filter
+        state); None before the navigator starts."""
         tr = self.navigator.tracker
-        return None if tr is None else tr.x
+        if tr is None:
+            return None
+        if t_s is None or t_s <= tr.t_s:
+            return tr.x
+        cached = self._nominal
+        x, t0 = (cached[1], cached[2]) if cached is not None and cached[0] is tr and \
+            cached[2] <= t_s else (tr.x, tr.t_s)
+        x = filter.extrapolate(x, t0, t_s, self.imu, self.navigator.filter_opts)
+        self._nominal = (tr, x, t_s)
+        return x
 
     def command(self, t_s: float, truth: LanderState) -> ThrustCommand:
         """The law's command for [t_s, t_s + 1 / guidance rate) from the navigated state (or the
         truth); raises ValueError when the law cannot plan from it."""
-        x = self.estimate()
+        x = self.estimate(t_s)
         if self.guidance_input == "truth" or x is None:
             state = NavigatedState(t_s, truth.r_mci_m, truth.v_mci_m_s, truth.q_mci_from_body,
                                    truth.mass_kg if self.guidance_input == "truth"

@@ -1,7 +1,9 @@
 """The closed loop: the world and the flight software at their rates, to touchdown.
 
-At each step time t_k = k / dynamics rate, in this order: the navigator is predicted to t_k
-when anything happens then; the camera's frame (every `frame_every` steps) is sensed and fused;
+At each step time t_k = k / dynamics rate, in this order: the navigator's filter is predicted
+to t_k when a sensor samples or a record falls then (between, guidance extrapolates the filter's
+nominal state on the IMU, as flight software propagates its state at a higher rate than its
+covariance); the camera's frame (every `frame_every` steps) is sensed and fused;
 the altimeter's and the velocimeter's samples likewise; the truth and the navigator are
 recorded (at the frames and the record grid); guidance commands the thrust and attitude held
 over the next `guidance_every` steps (zero-order hold); the world flies one step and the IMU's
@@ -96,8 +98,8 @@ def fly(world: World, fsw: FlightSoftware, camera: Camera | None, rates: Rates,
         vel_now = k % rates.velocimeter_every == 0
         rec_now = k % rates.record_every == 0 or frame_now
         guide_now = k % rates.guidance_every == 0
-        if frame_now or alt_now or vel_now or rec_now or guide_now:
-            fsw.propagate(t)
+        if frame_now or alt_now or vel_now or rec_now:  # the filter's steps; guidance
+            fsw.propagate(t)                            # extrapolates the nominal between them
         if frame_now and camera is not None:
             out.frames.append(camera.frame(world, fsw.navigator, k // rates.frame_every, t))
         if alt_now:
@@ -125,7 +127,7 @@ def fly(world: World, fsw: FlightSoftware, camera: Camera | None, rates: Rates,
             g.thrust_mci_n.append(cmd.thrust_mci_n)
             g.q_cmd.append(cmd.q_mci_from_body_cmd)
             g.true.append(world.state)
-            x = fsw.estimate()
+            x = fsw.estimate(t)
             nan3 = np.full(3, np.nan)
             g.r_nav_mci_m.append(nan3 if x is None else x.r_mci_m)
             g.v_nav_mci_m_s.append(nan3 if x is None else x.v_mci_m_s)

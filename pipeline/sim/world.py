@@ -20,12 +20,10 @@ import numpy as np
 from pipeline.core.body.surface import Surface
 from pipeline.core.dynamics.powered import LanderState, Step, Vehicle, find_contact, step
 from pipeline.core.math.constants import MOON_ROTATION_RATE_RAD_S
-from pipeline.core.math.frames import dcm_mci_from_mcmf
 from pipeline.core.math.rotations import dcm_from_q
 from pipeline.core.math.streams import stream
 from pipeline.core.sensors import imu
 
-MAX_RELIEF_M = 12_000.0  # above the reference sphere: no contact possible (LOLA: -9.1..10.8 km)
 MOON_RATE_MCI = np.array([0.0, 0.0, MOON_ROTATION_RATE_RAD_S])
 
 
@@ -101,7 +99,8 @@ class World:
     def contact(self) -> LanderState | None:
         """The touchdown state inside the last step (None without contact)."""
         r = self.state.r_mci_m
-        if float(r @ r) > (self.surface.reference_radius_m + MAX_RELIEF_M) ** 2:
+        top = self.surface.reference_radius_m + self.surface.max_height_m
+        if float(r @ r) > top * top:  # above the highest the surface reaches
             return None
         if float(self.surface.altitude_m(self.r_mcmf_m())) > 0.0:
             return None
@@ -114,12 +113,16 @@ class World:
     def theta_rad(self) -> float:
         return MOON_ROTATION_RATE_RAD_S * self.state.t_s
 
+    def dcm_mcmf_from_mci(self) -> np.ndarray:
+        """Rz(-theta) at the state's time (3, 3)."""
+        c, s = math.cos(self.theta_rad()), math.sin(self.theta_rad())
+        return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+
     def r_mcmf_m(self) -> np.ndarray:
-        return dcm_mci_from_mcmf(np.asarray(self.theta_rad())).T @ self.state.r_mci_m
+        return self.dcm_mcmf_from_mci() @ self.state.r_mci_m
 
     def dcm_body_from_mcmf(self) -> np.ndarray:
-        return (dcm_mci_from_mcmf(np.asarray(self.theta_rad())).T
-                @ dcm_from_q(self.state.q_mci_from_body)).T
+        return (self.dcm_mcmf_from_mci() @ dcm_from_q(self.state.q_mci_from_body)).T
 
     def true_biases(self) -> tuple[np.ndarray, np.ndarray]:
         """The gyro (rad/s) and accelerometer (m/s^2) biases of the sample in progress."""
@@ -136,8 +139,7 @@ class World:
         """(measured, true) slant range (m) along the beam to the surface; measured NaN without
         a return."""
         a = self.altimeter_truth
-        to_mci = dcm_mci_from_mcmf(np.asarray(self.theta_rad()))
-        beam = to_mci.T @ (dcm_from_q(self.state.q_mci_from_body) @ a.beam_body)
+        beam = self.dcm_mcmf_from_mci() @ (dcm_from_q(self.state.q_mci_from_body) @ a.beam_body)
         true = float(self.surface.intersect(self.r_mcmf_m(), beam))
         noise = float(self.altimeter_rng.standard_normal())
         t = self.state.t_s

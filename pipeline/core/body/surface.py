@@ -36,6 +36,7 @@ class Surface(Protocol):
 
     kind: ClassVar[str]
     reference_radius_m: float
+    max_height_m: float  # an upper bound of the height anywhere (m): above it, no contact
 
     def height_m(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Height (m) above the reference sphere at unit directions u_mcmf (..., 3)."""
@@ -73,6 +74,7 @@ class Sphere:
 
     kind: ClassVar[str] = "sphere"
     reference_radius_m: float = MOON_RADIUS_M
+    max_height_m: float = 0.0
 
     @classmethod
     def from_options(cls, opts: SphereOptions) -> Sphere:

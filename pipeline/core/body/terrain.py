@@ -221,6 +221,7 @@ class Terrain:
     takes an optional `resolution_m` (scalar or one per point/ray; default the options')."""
 
     kind: ClassVar[str] = "terrain"
+    max_height_m: float = 12_000.0  # above the Moon's highest relief (LOLA: -9.1..+10.8 km)
 
     def __init__(self, gen: _Generator, dcm_truth_from_map: np.ndarray | None = None,
                  bias_m: float = 0.0, min_resolution_m: float = 0.0) -> None:

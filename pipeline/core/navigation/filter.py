@@ -31,8 +31,8 @@ from pipeline.core.navigation.models import (
 from pipeline.core.navigation.strapdown import Trajectory, gravity_gradient, mechanise
 
 __all__ = ["BORESIGHT_BODY", "AltimeterSample", "CraterFrame", "FilterOptions", "ImuSamples",
-           "Measurement", "PoseFix", "Record", "VelocimeterSample", "dead_reckon", "nees",
-           "predict", "run", "true_error", "update"]
+           "Measurement", "PoseFix", "Record", "VelocimeterSample", "dead_reckon", "extrapolate",
+           "nees", "predict", "run", "true_error", "update"]
 TIME_TOL_S = 1e-6  # times closer than this are one time (k / rate computed two ways)
 
 
@@ -220,6 +220,21 @@ def _propagate(x: NavState, p: np.ndarray, t_a: float, t_b: float, imu: ImuSampl
     phi, qd = eskf.discretise(f, eskf.noise_density(opts.noise), span)
     p_new = phi @ p @ phi.T + qd
     return x_new, 0.5 * (p_new + p_new.T), phi
+
+
+def extrapolate(x: NavState, t_a: float, t_b: float, imu: ImuSamples, opts: FilterOptions
+                ) -> NavState:
+    """The nominal state alone from t_a to t_b (s) on the IMU, biases held (the strapdown
+    propagation of `_propagate`, without the covariance): what guidance flies on between the
+    filter's steps."""
+    dtheta, dv, dt = imu.between(t_a, t_b)
+    if dt.size == 0:
+        return x
+    path = mechanise(x.r_mci_m, x.v_mci_m_s, x.q_mci_from_body,
+                     dtheta - x.b_gyro_rad_s * dt[:, None], dv - x.b_accel_m_s2 * dt[:, None],
+                     dt, gravity=opts.gravity)
+    return NavState(path.r_mci_m[-1], path.v_mci_m_s[-1], path.q_mci_from_body[-1],
+                    x.b_gyro_rad_s, x.b_accel_m_s2)
 
 
 def path_midpoint(path: Trajectory, x: NavState) -> NavState:
