@@ -34,35 +34,15 @@ from pipeline.config.navigation import IdentificationConfig, NavigationConfig
 from pipeline.config.render import RenderConfig
 from pipeline.config.run import RunConfig
 from pipeline.config.scoring import ScoringConfig, SweepConfig, Window
+from pipeline.config.surface import MapConfig, TerrainConfig
 from pipeline.config.trajectory import TrajectoryConfig, impact_time_bounds_s
 from pipeline.errors import ConfigError
 
 __all__ = [
-    "MAX_SEED",
-    "PROPAGATION_LIMIT_S",
-    "AccelConfig",
-    "AltimeterConfig",
-    "CatalogueConfig",
-    "ConfigError",
-    "DetectionConfig",
-    "EstimationConfig",
-    "FlightConfig",
-    "GyroConfig",
-    "IdentificationConfig",
-    "ImuConfig",
-    "NavigationConfig",
-    "RenderConfig",
-    "RunConfig",
-    "ScoringConfig",
-    "SweepConfig",
-    "TrajectoryConfig",
-    "VelocimeterConfig",
-    "Window",
-    "config_hash",
-    "impact_time_bounds_s",
-    "load_config",
-    "scenario_path",
-    "to_dict",
-    "validate_run_id",
-    "validate_scenario_name",
+    "AccelConfig", "AltimeterConfig", "CatalogueConfig", "ConfigError", "DetectionConfig",
+    "EstimationConfig", "FlightConfig", "GyroConfig", "IdentificationConfig", "ImuConfig",
+    "MAX_SEED", "MapConfig", "NavigationConfig", "PROPAGATION_LIMIT_S", "RenderConfig",
+    "RunConfig", "ScoringConfig", "SweepConfig", "TerrainConfig", "TrajectoryConfig",
+    "VelocimeterConfig", "Window", "config_hash", "impact_time_bounds_s", "load_config",
+    "scenario_path", "to_dict", "validate_run_id", "validate_scenario_name",
 ]

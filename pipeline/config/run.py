@@ -18,6 +18,7 @@ from pipeline.config.inertial import MAX_IMU_SAMPLES, AltimeterConfig, ImuConfig
 from pipeline.config.navigation import IdentificationConfig, NavigationConfig
 from pipeline.config.render import RenderConfig
 from pipeline.config.scoring import ScoringConfig, SweepConfig
+from pipeline.config.surface import MapConfig, TerrainConfig
 from pipeline.config.trajectory import TrajectoryConfig
 from pipeline.core.guidance.targeting import descent_orbit
 from pipeline.core.sensors import imu
@@ -43,6 +44,8 @@ class RunConfig:
     render: RenderConfig
     flight: FlightConfig
     velocimeter: VelocimeterConfig
+    terrain: TerrainConfig
+    map: MapConfig
     scoring: ScoringConfig
     sweep: SweepConfig
 
@@ -98,6 +101,10 @@ class RunConfig:
                "needs detection.sensor = \"physical\"")
         if self.flight.closed_loop:
             self._check_closed_loop()
+        else:
+            _check(self.terrain.kind == "sphere" and self.map.kind == "truth", "terrain.kind",
+                   "a terrain (or a map other than the truth) is flown by the closed loop "
+                   "(flight.closed_loop = true); the open-loop stages see the sphere")
         # Cross-section: what the scoring needs of the trajectory (known without thrust).
         impact = self.trajectory.ballistic_impact_s()
         if impact is not None and not self.flight.closed_loop:
