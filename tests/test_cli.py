@@ -104,7 +104,8 @@ def test_stages_lists_each_declaration_in_order():
              if line and not line.startswith(" ")]
     assert heads == list(DAG.order)
     block = result.output.split("detect: ")[1].split("\nestimate: ")[0]
-    assert "inputs:  catalogue.json, trajectory.parquet (from ingest, trajectory)" in block
+    # trajectory.parquet has two producers: the open loop's trajectory, the closed loop's fly
+    assert "inputs:  catalogue.json, trajectory.parquet (from ingest, trajectory, fly)" in block
     assert "outputs: detections.parquet, frames.parquet\n" in block
     assert "visuals: detection.rrd (drawn by pipeline.viz.draw.detect)" in block
     code = block.split("code:")[1]

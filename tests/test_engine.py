@@ -151,9 +151,13 @@ def test_the_dag_follows_from_the_declarations():
     assert all(active.index(u) < active.index(n) for n in active for u in up(n))
     assert DAG.upstream_closure([RUN_TARGET], default) == [
         "ingest", "trajectory", "imu", "detect", "estimate", "navigate", "score"]
-    # without a config: every stage it may need (the rendered images when they are the source)
-    assert DAG.upstream_closure([RUN_TARGET]) == ["ingest", "trajectory", "imu", "render",
+    # without a config: every stage it may need (the rendered images when they are the source,
+    # the closed loop's tables when it flies)
+    assert DAG.upstream_closure([RUN_TARGET]) == ["ingest", "trajectory", "fly", "imu", "render",
                                                   "detect", "estimate", "navigate", "score"]
+    # the closed loop writes what trajectory, imu, detect and navigate write in the open loop
+    assert DAG.upstream_closure([RUN_TARGET], load_config("landing")) == [
+        "ingest", "fly", "estimate", "score"]
     assert DAG.upstream_closure([RUN_TARGET], load_config("images"))[3] == "render"
     assert DAG.downstream_of("detect") == ["detect", "estimate", "navigate", "score"]
     assert DAG.downstream_of("render", default) == ["render"]
@@ -257,8 +261,9 @@ def test_a_recording_edit_redraws_the_recordings_and_recomputes_nothing(monkeypa
 
 def test_an_operation_edit_rekeys_its_stages_and_their_downstream(monkeypatch):
     code0, code1, key0, key1, vis0, vis1 = hashes_with_edit(monkeypatch, "pipeline.ops.detect")
-    assert changed(code0, code1) == {"render", "detect"}
-    assert changed(key0, key1) == {"render", "detect", "estimate", "navigate", "score"}
+    # the closed loop detects with the same operation
+    assert changed(code0, code1) == {"render", "detect", "fly"}
+    assert changed(key0, key1) == {"render", "detect", "fly", "estimate", "navigate", "score"}
     assert changed(vis0, vis1) == changed(key0, key1)  # visuals follow what they draw
 
 

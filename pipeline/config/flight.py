@@ -41,6 +41,7 @@ class FlightConfig:
     site_lat_deg: float
     site_lon_deg: float
     approach_heading_deg: float  # the ground track's heading over the site (from north)
+    site_search_m: float  # the target: the flattest point of the map within this of the site
     pdi_range_km: float  # great-circle range from powered-descent initiation to the site
     coast_s: float  # the run starts this long before PDI, on the descent orbit
     periapsis_alt_km: float  # the descent orbit's periapsis: PDI
@@ -59,6 +60,8 @@ class FlightConfig:
     max_vertical_speed_m_s: float  # touchdown limits: above any, `crashed`
     max_horizontal_speed_m_s: float
     max_tilt_deg: float
+    max_slope_deg: float  # of the ground under the lander, over slope_baseline_m
+    slope_baseline_m: float
 
     def __post_init__(self) -> None:
         k = "flight."
@@ -86,6 +89,7 @@ class FlightConfig:
              why="the approach heading is undefined at the poles")
         _num(self.site_lon_deg, k + "site_lon_deg", -360.0, 360.0, unit="deg")
         _num(self.approach_heading_deg, k + "approach_heading_deg", -360.0, 360.0, unit="deg")
+        _num(self.site_search_m, k + "site_search_m", 0.0, 5_000.0, unit="m")
         _num(self.pdi_range_km, k + "pdi_range_km", 10.0, 3_000.0, unit="km")
         _num(self.coast_s, k + "coast_s", 0.0, PROPAGATION_LIMIT_S, unit="s")
         _num(self.periapsis_alt_km, k + "periapsis_alt_km", 1.0, 200.0, unit="km")
@@ -115,6 +119,8 @@ class FlightConfig:
         _num(self.max_horizontal_speed_m_s, k + "max_horizontal_speed_m_s", 0.0, 100.0,
              lo_open=True, unit="m/s")
         _num(self.max_tilt_deg, k + "max_tilt_deg", 0.0, 90.0, lo_open=True, unit="deg")
+        _num(self.max_slope_deg, k + "max_slope_deg", 0.0, 90.0, lo_open=True, unit="deg")
+        _num(self.slope_baseline_m, k + "slope_baseline_m", 0.5, 100.0, unit="m")
 
     @property
     def steps_per_guidance(self) -> int:

@@ -111,6 +111,7 @@ class AltimeterConfig:
     fault_end_s: float
     fault_bias_m: float
     beam_mounting_deg: tuple[float, ...]  # the beam from body +z: 3-2-1 Euler z, y, x (deg)
+    footprint_mrad: float  # the beam's divergence: it ranges to the terrain at range x this
 
     def __post_init__(self) -> None:
         k = "altimeter."
@@ -129,6 +130,7 @@ class AltimeterConfig:
         _check(self.fault_end_s >= self.fault_start_s, k + "fault_end_s",
                f"= {self.fault_end_s:g} s is before fault_start_s ({self.fault_start_s:g} s)")
         _num(self.fault_bias_m, k + "fault_bias_m", -1e6, 1e6, unit="m")
+        _num(self.footprint_mrad, k + "footprint_mrad", 0.01, 100.0, unit="mrad")
 
     def beam_body(self) -> np.ndarray:
         """The beam's unit direction (3,) in body axes: body +z turned by beam_mounting_deg."""

@@ -132,6 +132,9 @@ class RunConfig:
                "sensor, simulated)")
         _check(d.source == "model", "detection.source", "= \"pixels\" is not flown: the closed "
                "loop detects with the sensor model (render its frames afterwards)")
+        _check(self.map.kind != "terrain" or self.terrain.kind == "terrain", "map.kind",
+               "= \"terrain\" is the world's terrain through a flight map's errors: it needs "
+               "terrain.kind = \"terrain\"")
         _check(n.crater_updates in ("tight", "none"), "navigation.crater_updates",
                f"= {n.crater_updates!r}: the closed loop's navigator fuses craters tightly, or "
                "not at all (\"none\")")

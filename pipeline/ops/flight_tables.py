@@ -20,7 +20,7 @@ import polars as pl
 from pipeline.core.body.surface import Surface
 from pipeline.core.dynamics.powered import LanderState, Vehicle
 from pipeline.core.guidance.base import Target
-from pipeline.core.guidance.fly import touchdown
+from pipeline.core.guidance.fly import TouchdownLimits, touchdown
 from pipeline.core.math import frames
 from pipeline.core.math.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
 from pipeline.core.navigation import filter
@@ -28,7 +28,7 @@ from pipeline.core.navigation.eskf import NavState
 from pipeline.core.navigation.models import Record
 from pipeline.io.tables import quat_columns, xyz_columns
 from pipeline.ops.trajectory import nadir_pointing_error_rad
-from pipeline.sim.loop import FlightRecord
+from pipeline.sim.loop import FlightRecord, contact_slope_deg
 
 
 def _states(states: list[LanderState]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -115,7 +115,9 @@ def guidance_table(rec: FlightRecord, vehicle: Vehicle, surface: Surface) -> pl.
         "throttle": flown / vehicle.max_thrust_n, "mass_kg": mass,
         "mass_belief_kg": np.array(g.mass_belief_kg),
         "propellant_kg": mass - vehicle.dry_mass_kg,
-        "altitude_m": surface.altitude_m(r_mcmf), "speed_m_s": np.linalg.norm(v, axis=1),
+        "altitude_m": surface.altitude_m(r_mcmf, np.maximum(
+            0.01 * (np.linalg.norm(r_mcmf, axis=1) - surface.reference_radius_m), 0.5)),
+        "speed_m_s": np.linalg.norm(v, axis=1),
         **xyz_columns("r_mci", "_m", r), **xyz_columns("v_mci", "_m_s", v),
         **xyz_columns("r_nav_mci", "_m", np.array(g.r_nav_mci_m).reshape(-1, 3)),
         **xyz_columns("v_nav_mci", "_m_s", np.array(g.v_nav_mci_m_s).reshape(-1, 3)),
@@ -135,8 +137,9 @@ def _site_axes(target: Target, heading_deg: float) -> tuple[np.ndarray, ...]:
     return up, east, north, down, cross
 
 
-def touchdown_table(rec: FlightRecord, target: Target, heading_deg: float,
-                    vehicle: Vehicle, surface: Surface, facts: dict[str, Any]) -> pl.DataFrame:
+def touchdown_table(rec: FlightRecord, target: Target, heading_deg: float, vehicle: Vehicle,
+                    surface: Surface, limits: TouchdownLimits, facts: dict[str, Any]
+                    ) -> pl.DataFrame:
     """The one-row touchdown table (module docstring); NaN where there was no contact."""
     nan = math.nan
     row: dict[str, Any] = {"status": rec.status, "reason": rec.reason, **facts}
@@ -160,8 +163,7 @@ def touchdown_table(rec: FlightRecord, target: Target, heading_deg: float,
         k = p_nav - p_true
         f = p_nav - target.r_mcmf_m
         td = touchdown(c, target)
-        u = p_true / np.linalg.norm(p_true)
-        slope = math.degrees(math.acos(float(np.clip(surface.normal(u) @ u, -1.0, 1.0))))
+        slope = contact_slope_deg(c, surface, limits)
         row.update({
             "t_s": c.t_s, "lat_deg": float(np.degrees(lat)), "lon_deg": float(np.degrees(lon)),
             "miss_m": float(np.hypot(d @ east, d @ north)),

@@ -3,6 +3,10 @@ options (`FlyOptions`, from the config sections flight, velocimeter, detection, 
 navigation, imu, altimeter), flown to touchdown (`pipeline.sim.loop`), and its tables
 (`pipeline.ops.flight_tables`).
 
+The surfaces (`pipeline.ops.surfaces`): the world's, built of the world's craters, and the
+navigator's map; the corridor's craters sit on each (the camera sees the world's rims, the
+navigator believes its map's); the target is the site on the map.
+
 The start: the descent orbit that reaches the site (`pipeline.core.guidance.targeting`), the
 lander in its braking attitude (thrust axis against the velocity, body +x toward the ground),
 coast_s before powered-descent initiation; the navigator from that truth plus its seeded
@@ -16,7 +20,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from pipeline.core.body.surface import Surface
+from pipeline.core.body.surface import Sphere, Surface
 from pipeline.core.dynamics.attitude import thrust_attitude
 from pipeline.core.dynamics.powered import LanderState, Vehicle
 from pipeline.core.guidance import ApolloGuidance, ApolloOptions
@@ -27,12 +31,22 @@ from pipeline.core.guidance.targeting import DescentOrbit, descent_orbit
 from pipeline.core.math.frames import unit_mcmf_from_latlon
 from pipeline.core.navigation.eskf import NavState
 from pipeline.core.navigation.navigator import Identification, Navigator, Tracker
-from pipeline.core.sensors.detection import CraterArrays, DetectionModel
+from pipeline.core.sensors import rim_sensor
+from pipeline.core.sensors.conics import tangent_basis
+from pipeline.core.sensors.detection import CraterArrays, Craters, DetectionModel
 from pipeline.core.sensors.imu import ImuGrade
 from pipeline.core.vision.identify import IdentifyOptions
 from pipeline.core.vision.index_cache import IndexCache
 from pipeline.errors import ConfigError
 from pipeline.ops.navigate import NavigateOptions, dispersed_state
+from pipeline.ops.surfaces import (
+    SurfaceOptions,
+    Surfaces,
+    build_surfaces,
+    corridor_craters,
+    nominal_path_mcmf_m,
+    on_surface,
+)
 from pipeline.sim.camera import Camera, PaperCamera, RimCamera
 from pipeline.sim.flight_software import FlightSoftware, SensorBelief
 from pipeline.sim.loop import FlightRecord, Rates, fly
@@ -46,6 +60,7 @@ class SiteOptions:
 
     lat_deg: float
     lon_deg: float
+    search_m: float
     heading_deg: float
     pdi_range_m: float
     coast_s: float
@@ -61,7 +76,7 @@ class FlyOptions:
     vehicle: Vehicle  # the truth
     vehicle_belief: Vehicle  # what the flight software believes
     world_gravity: str
-    surface: Surface  # the world's
+    surfaces: SurfaceOptions  # the world's and the map
     imu: ImuGrade  # the truth's error model
     altimeter: AltimeterTruth
     velocimeter: VelocimeterTruth
@@ -79,11 +94,27 @@ class FlyOptions:
     limits: TouchdownLimits
 
 
-def site_target(o: FlyOptions) -> Target:
-    """The target: the site's point on the world's surface (MCMF, m) and the vertical descent."""
+def site_target(o: FlyOptions, flight_map: Surface) -> Target:
+    """The target (MCMF, m) and the vertical descent: the point of the navigator's map within
+    site.search_m of the site where the ground is flattest over the landing gear's span (the
+    site itself without a search; the nearest of equally flat points), at the map's height.
+    As mission planners pick a target on the best map they have: what the map cannot see
+    (features finer than its resolution) the lander may still meet."""
     u = unit_mcmf_from_latlon(np.radians(o.site.lat_deg), np.radians(o.site.lon_deg))
-    height = float(o.surface.height_m(u))
-    return Target(u * (o.surface.reference_radius_m + height), o.target_descent_rate_m_s,
+    baseline = o.limits.slope_baseline_m
+    if o.site.search_m > 0.0:
+        east, north = tangent_basis(u)
+        step = 0.5 * baseline
+        k = np.arange(-np.floor(o.site.search_m / step), np.floor(o.site.search_m / step) + 1)
+        de, dn = (g.ravel() * step for g in np.meshgrid(k, k))
+        inside = np.hypot(de, dn) <= o.site.search_m
+        de, dn = de[inside], dn[inside]
+        cand = u * flight_map.reference_radius_m + de[:, None] * east + dn[:, None] * north
+        cand /= np.linalg.norm(cand, axis=1, keepdims=True)
+        slope = np.round(flight_map.slope_deg(cand, baseline), 1)  # 0.1 deg: equally flat
+        u = cand[np.lexsort((np.hypot(de, dn), slope))[0]]
+    height = float(flight_map.height_m(u, baseline))
+    return Target(u * (flight_map.reference_radius_m + height), o.target_descent_rate_m_s,
                   o.target_low_gate_alt_m)
 
 
@@ -115,19 +146,57 @@ def check_plan(o: FlyOptions, orbit: DescentOrbit, target: Target) -> None:
                           ) from None
 
 
-def run_flight(o: FlyOptions, craters: CraterArrays, navigator_craters: CraterArrays,
-               indexes: IndexCache | None, sun_mcmf_m: Callable[[float], np.ndarray] | None,
-               seed: int, advance: Callable[[float], None] | None = None
-               ) -> tuple[FlightRecord, LanderState, NavState, Target, DescentOrbit]:
-    """Fly once: the record, the true start, the navigator's start, the target, the orbit.
-    `craters` is the catalogue the world's craters derive from, `navigator_craters` the one the
-    navigator holds (its rim crests, for the physical sensor)."""
+@dataclass(frozen=True)
+class Scene:
+    """The world's and the map's surfaces, the world's craters (the truth, rims on the world)
+    and the catalogue as the navigator holds it (rims on its map), the corridor's rows."""
+
+    surfaces: Surfaces
+    world_craters: rim_sensor.World
+    navigator_craters: Craters
+    corridor: np.ndarray
+
+
+def scene(o: FlyOptions, craters: CraterArrays, orbit: DescentOrbit) -> Scene:
+    """The surfaces and the craters on them (module docstring)."""
+    phys = o.model.physical
+    if phys is not None:
+        truth = rim_sensor.world_craters(craters.r_mcmf_m, craters.diam_km * 1e3,
+                                         craters.crater_id, phys.catalogue_errors,
+                                         phys.world_seed)
+    else:
+        truth = rim_sensor.World(craters.r_mcmf_m, craters.diam_km * 1e3)
+    surfaces = build_surfaces(o.surfaces, truth.r_mcmf_m, truth.diam_m)
+    if isinstance(surfaces.world, Sphere) and isinstance(surfaces.map, Sphere):
+        rows = np.empty(0, np.int64)
+    else:
+        u = unit_mcmf_from_latlon(np.radians(o.site.lat_deg), np.radians(o.site.lon_deg))
+        path = nominal_path_mcmf_m(orbit, u * surfaces.world.reference_radius_m,
+                                   o.world_gravity)
+        focal, min_px = ((phys.camera.fx_px, phys.detectability.min_diameter_px) if phys
+                         else (float(o.model.k[0, 0]), 1.0))
+        rows = corridor_craters(truth.r_mcmf_m, truth.diam_m, path, focal, min_px)
+    world = rim_sensor.World(on_surface(truth.r_mcmf_m, truth.diam_m, rows, surfaces.world),
+                             truth.diam_m)
+    believed = Craters(craters.crater_id, craters.diam_km,
+                       on_surface(craters.r_mcmf_m, craters.diam_km * 1e3, rows, surfaces.map),
+                       craters.index)
+    return Scene(surfaces, world, believed, rows)
+
+
+def run_flight(o: FlyOptions, craters: CraterArrays, indexes: IndexCache | None,
+               sun_mcmf_m: Callable[[float], np.ndarray] | None, seed: int,
+               advance: Callable[[float], None] | None = None
+               ) -> tuple[FlightRecord, LanderState, NavState, Target, DescentOrbit, Scene]:
+    """Fly once: the record, the true start, the navigator's start, the target, the orbit and
+    the scene. `craters` is the catalogue (the world's craters derive from it)."""
     orbit = descent(o)
-    target = site_target(o)
+    sc = scene(o, craters, orbit)
+    target = site_target(o, sc.surfaces.map)
     check_plan(o, orbit, target)
     state0 = start_state(o, orbit)
-    world = World(o.vehicle, state0, o.surface, o.world_gravity, o.rates.dt_s, o.rates.max_steps,
-                  o.imu, o.altimeter, o.velocimeter, seed)
+    world = World(o.vehicle, state0, sc.surfaces.world, o.world_gravity, o.rates.dt_s,
+                  o.rates.max_steps, o.imu, o.altimeter, o.velocimeter, seed)
     x_true0 = NavState(state0.r_mci_m, state0.v_mci_m_s, state0.q_mci_from_body, np.zeros(3),
                        np.zeros(3))
     x0, p0, _ = dispersed_state(o.navigate, x_true0, seed)
@@ -135,14 +204,19 @@ def run_flight(o: FlyOptions, craters: CraterArrays, navigator_craters: CraterAr
     camera: Camera
     if o.identify is not None:
         assert indexes is not None and sun_mcmf_m is not None
-        ident = Identification(o.model, o.identify, navigator_craters, indexes)
-        camera = RimCamera(o.model, craters, o.false_detection_share, sun_mcmf_m, seed)
+        ident = Identification(o.model, o.identify, sc.navigator_craters, indexes)
+        camera = RimCamera(o.model, craters, sc.world_craters, o.false_detection_share,
+                           sun_mcmf_m, seed)
     else:
-        camera = PaperCamera(o.model, craters, seed, o.crater_updates)
-    navigator = Navigator(o.navigate.filter, Tracker(x0, p0, 0.0), ident, seed,
+        seen = Craters(craters.crater_id, craters.diam_km, sc.world_craters.r_mcmf_m,
+                       craters.index)
+        camera = PaperCamera(o.model, seen, sc.navigator_craters.r_mcmf_m, seed,
+                             o.crater_updates)
+    filter_opts = replace(o.navigate.filter, surface=sc.surfaces.map)
+    navigator = Navigator(filter_opts, Tracker(x0, p0, 0.0), ident, seed,
                           crater_updates=o.crater_updates, count_sightings=True)
     law = ApolloGuidance(replace(o.guidance, ignition_t_s=orbit.t_pdi_s), o.vehicle_belief)
     fsw = FlightSoftware(navigator, law, target, o.vehicle_belief, o.vehicle_belief.wet_mass_kg,
                          o.rates.dt_s, o.rates.max_steps, o.sensors, o.guidance_input)
     record = fly(world, fsw, camera, o.rates, o.limits, advance)
-    return record, state0, x0, target, orbit
+    return record, state0, x0, target, orbit, sc

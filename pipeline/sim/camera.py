@@ -1,12 +1,14 @@
 """The camera in the closed loop: at each frame the world's sensor reports what it sees from the
 true pose, and the flight software's navigator identifies and fuses it.
 
+The world's craters (the truth: rims on the world's surface) and the navigator's (its
+catalogue, rims on its map) are given apart.
 - `RimCamera`: the physical sensor (rim ellipses, the Sun, detectability, false detections;
   `pipeline.core.sensors.rim_sensing.sense_frame`), identified by the navigator by tracking
   (`Navigator.camera_frame`), which updates its filter with the identified craters.
 - `PaperCamera`: the paper's sensor (Eq. 9 visibility, Eq. 10-11 noise,
   `pipeline.core.sensors.detection.detect_frame`) with its coin-flip identification; the used
-  craters update the navigator's filter (tightly coupled).
+  craters (at the navigator's believed centres) update its filter (tightly coupled).
 Each frame's draws come from its own streams (`frame_rngs(seed, frame)`).
 """
 
@@ -51,14 +53,11 @@ class Seen:
 class RimCamera:
     """The physical sensor and identification by the navigator (module docstring)."""
 
-    def __init__(self, model: DetectionModel, seen: CraterArrays, false_share: float,
-                 sun_mcmf_m: Callable[[float], np.ndarray], seed: int) -> None:
-        phys = model.physical
-        assert phys is not None
-        self.model, self.seen, self.false_share, self.sun, self.seed = (
-            model, seen, false_share, sun_mcmf_m, seed)
-        self.world = rim_sensor.world_craters(seen.r_mcmf_m, seen.diam_km * 1e3, seen.crater_id,
-                                              phys.catalogue_errors, phys.world_seed)
+    def __init__(self, model: DetectionModel, seen: CraterArrays, world: rim_sensor.World,
+                 false_share: float, sun_mcmf_m: Callable[[float], np.ndarray], seed: int
+                 ) -> None:
+        self.model, self.seen, self.world, self.false_share, self.sun, self.seed = (
+            model, seen, world, false_share, sun_mcmf_m, seed)
 
     def frame(self, world: World, navigator: Navigator, frame: int, t_s: float) -> Seen:
         rngs = frame_rngs(self.seed, frame)
@@ -75,9 +74,10 @@ class RimCamera:
 class PaperCamera:
     """The paper's sensor and coin-flip identification (module docstring)."""
 
-    def __init__(self, model: DetectionModel, craters: CraterArrays, seed: int,
-                 crater_updates: bool) -> None:
+    def __init__(self, model: DetectionModel, craters: CraterArrays,
+                 believed_r_mcmf_m: np.ndarray, seed: int, crater_updates: bool) -> None:
         self.model, self.craters, self.seed = model, craters, seed
+        self.believed_r_mcmf_m = believed_r_mcmf_m
         self.crater_updates = crater_updates
 
     def frame(self, world: World, navigator: Navigator, frame: int, t_s: float) -> Seen:
@@ -86,7 +86,7 @@ class PaperCamera:
         det = paper_frame(self.model, self.craters, r, dcm,
                           float(np.linalg.norm(r)) - self.model.moon_radius_m, rngs)
         if self.crater_updates and det.used.any():
-            c_mci = self.craters.r_mcmf_m[det.matched_row[det.used]] @ dcm_mci_from_mcmf(
+            c_mci = self.believed_r_mcmf_m[det.matched_row[det.used]] @ dcm_mci_from_mcmf(
                 np.asarray(theta)).T
             navigator.update([filter.CraterFrame(
                 t_s, frame, c_mci, det.u_meas_body[det.used], det.rho_meas_m[det.used])])

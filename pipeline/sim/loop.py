@@ -10,7 +10,8 @@ over the next `guidance_every` steps (zero-order hold); the world flies one step
 increments go to the flight software. The flight ends at contact with the surface, when the
 navigator can no longer be flown on, or at the step limit.
 
-Outcomes: `landed` (contact within the touchdown limits), `crashed` (outside them),
+Outcomes: `landed` (contact within the touchdown limits: speeds, tilt and the ground's slope),
+`crashed` (outside them),
 `out_of_fuel` (the propellant ran out before contact: never a landing) and `diverged` (the
 navigator lost, guidance unable to plan, or no touchdown by the end).
 """
@@ -23,9 +24,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.core.body.surface import Surface
 from pipeline.core.dynamics.powered import LanderState
 from pipeline.core.guidance.base import Target
 from pipeline.core.guidance.fly import TouchdownLimits, touchdown
+from pipeline.core.math.constants import MOON_ROTATION_RATE_RAD_S
+from pipeline.core.math.frames import mcmf_from_mci
 from pipeline.core.navigation.models import Record
 from pipeline.sim.camera import Camera, Seen
 from pipeline.sim.flight_software import FlightSoftware
@@ -172,5 +176,12 @@ def _status(out: FlightRecord, world: World, target: Target, limits: TouchdownLi
     down = touchdown(out.contact, target)
     inside = (down.vertical_speed_m_s <= limits.vertical_speed_m_s
               and down.horizontal_speed_m_s <= limits.horizontal_speed_m_s
-              and down.tilt_deg <= limits.tilt_deg)
+              and down.tilt_deg <= limits.tilt_deg
+              and contact_slope_deg(out.contact, world.surface, limits) <= limits.slope_deg)
     return "landed" if inside else "crashed"
+
+
+def contact_slope_deg(contact: LanderState, surface: Surface, limits: TouchdownLimits) -> float:
+    """The ground's slope (deg) under a contact state, over the landing gear's span."""
+    r = mcmf_from_mci(contact.r_mci_m, np.asarray(MOON_ROTATION_RATE_RAD_S * contact.t_s))
+    return float(surface.slope_deg(r / np.linalg.norm(r), limits.slope_baseline_m))

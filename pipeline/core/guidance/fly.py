@@ -30,12 +30,15 @@ MAX_RELIEF_M = 12_000.0  # above the reference sphere; the Moon's relief spans -
 
 @dataclass(frozen=True)
 class TouchdownLimits:
-    """The largest speeds relative to the ground (m/s) and tilt of body +z from the local down
-    (deg) of a landing."""
+    """The largest speeds relative to the ground (m/s), tilt of body +z from the local down
+    (deg) and slope of the ground (deg, read at the resolution slope_baseline_m, the landing
+    gear's span) of a landing."""
 
     vertical_speed_m_s: float = 2.0
     horizontal_speed_m_s: float = 1.0
     tilt_deg: float = 10.0
+    slope_deg: float = 12.0  # the Apollo LM's gear design slope
+    slope_baseline_m: float = 4.0
 
 
 @dataclass(frozen=True)

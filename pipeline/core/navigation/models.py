@@ -93,6 +93,7 @@ class FilterOptions:
     max_step_s: float = 1.0  # longest covariance propagation step (s)
     smooth: bool = False  # run the RTS smoother too
     altimeter_beam_body: np.ndarray = field(default_factory=lambda: BORESIGHT_BODY.copy())
+    altimeter_footprint_rad: float = 1e-3  # the map is read at the range x this
 
 
 @dataclass
@@ -190,7 +191,8 @@ class AltimeterModel:
 
     def apply(self, rec: Record, m: AltimeterSample, opts: FilterOptions, gates: Gates
               ) -> tuple[float, int]:
-        rho, jac = predicted_range(rec.x, m.t_s, opts.surface, opts.altimeter_beam_body)
+        rho, jac = predicted_range(rec.x, m.t_s, opts.surface, opts.altimeter_beam_body,
+                                   max(m.rho_m * opts.altimeter_footprint_rad, 0.5))
         if not np.isfinite(rho):
             return 0.0, 0
         e = np.array([(m.rho_m - rho) / m.sigma_m])
@@ -204,21 +206,21 @@ class AltimeterModel:
         return up.nis, 1
 
 
-def predicted_range(x: NavState, t_s: float, surface: Surface, beam_body: np.ndarray
-                    ) -> tuple[float, np.ndarray]:
-    """The range (m) the navigator predicts along the beam (body axes) to its map, and its
-    Jacobian (6,) over [dr (m), dtheta (rad)]."""
+def predicted_range(x: NavState, t_s: float, surface: Surface, beam_body: np.ndarray,
+                    resolution_m: float = 1.0) -> tuple[float, np.ndarray]:
+    """The range (m) the navigator predicts along the beam (body axes) to its map (read at
+    resolution_m: the beam's footprint), and its Jacobian (6,) over [dr (m), dtheta (rad)]."""
     if isinstance(surface, Sphere):
         return eskf.altimeter_jacobian(x, beam_body, surface.reference_radius_m)
     dcm = dcm_from_q(x.q_mci_from_body)
     b = dcm @ beam_body
     to_mci = dcm_mci_from_mcmf(MOON_ROTATION_RATE_RAD_S * t_s)
     r_mcmf, b_mcmf = to_mci.T @ x.r_mci_m, to_mci.T @ b
-    rho = float(surface.intersect(r_mcmf, b_mcmf))
+    rho = float(surface.intersect(r_mcmf, b_mcmf, resolution_m))
     if not np.isfinite(rho):
         return rho, np.zeros(6)
     p_mcmf = r_mcmf + rho * b_mcmf
-    n = to_mci @ surface.normal(p_mcmf / np.linalg.norm(p_mcmf))
+    n = to_mci @ surface.normal(p_mcmf / np.linalg.norm(p_mcmf), resolution_m)
     nb = float(n @ b)
     return rho, np.concatenate([-n / nb, rho * (n @ dcm @ skew(beam_body)) / nb])
 

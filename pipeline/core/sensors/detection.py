@@ -35,10 +35,23 @@ PHYSICAL_COLUMNS = (
 
 
 class CraterArrays(Protocol):
-    crater_id: np.ndarray  # (N,) int64
-    diam_km: np.ndarray  # (N,)
-    r_mcmf_m: np.ndarray  # (N, 3)
-    index: tiling.TileIndex
+    """A catalogue's craters as arrays, rows sorted by the index's tiles (read-only)."""
+
+    @property
+    def crater_id(self) -> np.ndarray:  # (N,) int64
+        ...
+
+    @property
+    def diam_km(self) -> np.ndarray:  # (N,)
+        ...
+
+    @property
+    def r_mcmf_m(self) -> np.ndarray:  # (N, 3) m, MCMF
+        ...
+
+    @property
+    def index(self) -> tiling.TileIndex:
+        ...
 
 
 @dataclass
