@@ -164,15 +164,17 @@ def whitened_system(r_mci_m: np.ndarray, q_mci_from_body: np.ndarray, c_mci_m: n
 
 def whitened_system_from_los(w_mci: np.ndarray, rho_pred_m: np.ndarray,
                              dcm_mci_from_body: np.ndarray, u_body: np.ndarray,
-                             rho_m: np.ndarray, sigma_bearing: Sigma, sigma_range_m: Sigma
+                             rho_m: np.ndarray, sigma_bearing: Sigma, sigma_range_m: Sigma,
+                             missing: np.ndarray | bool | None = True
                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`whitened_system` from `line_of_sight`'s lines of sight w (N, 3) (MCI) and predicted
     ranges (N,) (m) and the attitude's DCM (3, 3): e (N, 4), J (N, 4, 6) and the predicted
     bearings (N, 3) (body), the same numbers (the estimators' inner loop: the noise, a number or
-    (N,) per crater, is not validated here but by `noise` once per frame)."""
-    missing = np.isnan(rho_m)
-    if not missing.any():
-        missing = None
+    (N,) per crater, is not validated here but by `noise` once per frame). `missing`: the (N,)
+    bool mask of the NaN ranges, None when there are none, or True (the default) to find them."""
+    if isinstance(missing, bool):
+        found = np.isnan(rho_m)
+        missing = found if found.any() else None
     u_pred, jac = _jacobian_from_los(w_mci, rho_pred_m, dcm_mci_from_body, sigma_bearing,
                                      sigma_range_m, missing)
     e = np.empty((rho_pred_m.size, 4))

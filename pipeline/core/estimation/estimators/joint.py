@@ -235,10 +235,12 @@ class JointEstimator(Estimator):
         simple = np.ndim(sigma_b) == 0 and np.ndim(sigma_r) == 0 and not np.isnan(rs).any()
         x = initial.r_mci_m.copy()
         q = initial.q_mci_from_body
+        missing = np.isnan(rs)
+        missing_rows = missing if missing.any() else None
         for k in range(1, o.max_iterations + 1):
             w, rng_m = line_of_sight(x, cs)
             e, jac, u_pred = whitened_system_from_los(w, rng_m, dcm_from_q(q), us, rs, sigma_b,
-                                                      sigma_r)
+                                                      sigma_r, missing_rows)
             jac_rows = jac.reshape(-1, 6)
             h = jac_rows.T @ jac_rows
             try:
@@ -247,13 +249,14 @@ class JointEstimator(Estimator):
                 return failed(Status.DEGENERATE, use, k)
             gradient = jac_rows.T @ e.reshape(-1)
             step = h_inv @ gradient
-            with np.errstate(over="ignore"):  # finite entries can overflow the norm
-                if not np.isfinite(float(step @ step)):
-                    return failed(Status.DEGENERATE, use, k)
+            s0, s1, s2, s3, s4, s5 = step.tolist()
+            dx2, dth2 = s0 * s0 + s1 * s1 + s2 * s2, s3 * s3 + s4 * s4 + s5 * s5
+            if not math.isfinite(dx2 + dth2):
+                return failed(Status.DEGENERATE, use, k)
             x_full = x + step[:3]
             q_full = q_multiply(q, q_exp(step[3:]))
             q_full /= math.sqrt(float(q_full @ q_full))
-            dx, dth = math.sqrt(float(step[:3] @ step[:3])), math.sqrt(float(step[3:] @ step[3:]))
+            dx, dth = math.sqrt(dx2), math.sqrt(dth2)
             # whitened rounding level of the residuals, propagated to each block of the step
             rho_max = float(rng_m.max())
             if simple:
@@ -261,15 +264,16 @@ class JointEstimator(Estimator):
             else:
                 level = rounding_level(f, rng_m)
             noise = ROUNDING_FACTOR * EPS * level
-            diag = np.abs(np.diag(h_inv))
-            if (dx <= max(o.step_tol_m, noise * math.sqrt(diag[:3].sum()))
-                    and dth <= max(o.step_tol_m / rho_max, noise * math.sqrt(diag[3:].sum()))):
+            d0, d1, d2, d3, d4, d5 = h_inv.diagonal().tolist()
+            if (dx <= max(o.step_tol_m, noise * math.sqrt(abs(d0) + abs(d1) + abs(d2)))
+                    and dth <= max(o.step_tol_m / rho_max,
+                                   noise * math.sqrt(abs(d3) + abs(d4) + abs(d5)))):
                 cov, (low, high) = scaled_inverse(h)
                 if cov is None:
                     return failed(Status.DEGENERATE, use, k)
                 flat = e.reshape(-1)
-                fit = FitSystem(h, high / low, float(flat @ flat) - float(gradient @ step),
-                                float(step @ h @ step), rng_m,
+                shs = float(gradient @ step)  # step^T h step
+                fit = FitSystem(h, high / low, float(flat @ flat) - shs, shs, rng_m,
                                 np.einsum("ij,ij->i", u_pred, us))
                 return PoseEstimate(Status.OK.value, x_full, positive_scalar(q_full), cov,
                                     np.full((3, 3), np.nan), k, use, fit)
