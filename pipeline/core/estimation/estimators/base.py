@@ -140,17 +140,23 @@ def inverse_if_well_conditioned(h: np.ndarray, max_condition: float = MAX_CONDIT
     return inverse
 
 
-def scaled_inverse(h: np.ndarray, max_condition: float = MAX_CONDITION
-                   ) -> tuple[np.ndarray | None, tuple[float, float]]:
+def scaled_inverse(h: np.ndarray, max_condition: float = MAX_CONDITION, *,
+                   direct: bool = False) -> tuple[np.ndarray | None, tuple[float, float]]:
     """`inverse_if_well_conditioned` and the smallest and largest eigenvalue of h Jacobi-scaled
     (unit diagonal; NaN when h is not finite or its diagonal not positive), from one symmetric
-    eigendecomposition."""
+    eigendecomposition: numpy's (the estimates' arithmetic), or with `direct` LAPACK's dsyevd
+    called through scipy without numpy's wrapper (for decisions: equal to rounding)."""
     diag = h.diagonal()
     if not (np.isfinite(h).all() and (diag > 0).all()):
         return None, (math.nan, math.nan)
     s = 1.0 / np.sqrt(diag)
     outer = s[:, None] * s[None, :]
-    ev, vec = np.linalg.eigh(h * outer)
+    if direct:
+        ev, vec, info = lapack.dsyevd(h * outer)
+        if info != 0:
+            return None, (math.nan, math.nan)
+    else:
+        ev, vec = np.linalg.eigh(h * outer)
     extremes = (float(ev[0]), float(ev[-1]))
     if not ev[0] > ev[-1] / max_condition:
         return None, extremes

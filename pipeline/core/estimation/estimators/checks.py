@@ -25,10 +25,12 @@ The noise is one number or one value per crater (`measurement.Sigma`) for the ro
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
+from scipy.linalg import lapack
 from scipy.stats import chi2
 
 from pipeline.core.estimation.estimators.base import (
@@ -99,7 +101,7 @@ def check_estimate(est: PoseEstimate, c_mci_m: np.ndarray, u_body: np.ndarray, r
         with np.errstate(all="ignore"):
             ne = normal_equations(r, dcm_from_q(est.q_mci_from_body), frame(
                 c, u, rho, per_crater(sigma_bearing, use), per_crater(sigma_range_m, use)))
-        bound, _ = scaled_inverse(ne.info, options.max_condition)
+        bound, _ = scaled_inverse(ne.info, options.max_condition, direct=True)
         rho_pred, cos_pred = ne.rho_pred_m, ne.cos_pred
     else:
         well = fit.condition <= options.max_condition \
@@ -156,10 +158,8 @@ def _linearised(info: np.ndarray, gradient: np.ndarray, cost: float, bound: np.n
     with the cost e^T e - g^T delta, at the distance delta^T cov^-1 delta (NaN when cov is
     singular)."""
     delta = bound @ gradient
-    try:
-        shift = float(delta @ np.linalg.solve(cov, delta))
-    except np.linalg.LinAlgError:
-        shift = np.nan
+    _, _, solved, info = lapack.dgesv(cov, delta)  # LU, as np.linalg.solve, without its wrapper
+    shift = float(delta @ solved) if info == 0 else math.nan
     return cost - float(gradient @ delta), shift
 
 
