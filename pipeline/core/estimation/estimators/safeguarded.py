@@ -38,15 +38,12 @@ from pipeline.core.scoring.status import Status
 
 # A step is shortened to the minimum of the parabola through the costs (`_line_search`) when
 # that is below LINE_SEARCH_BELOW of it, but not below MIN_FRACTION, then halved at most
-# MAX_HALVINGS times while the cost still rises; and the fit has converged once the distance
-# still to go is below SMALL_STEP_SIGMA standard deviations of the estimate (the step, or while
-# the steps contract by a ratio of at most MAX_CONTRACTION the a posteriori bound of it).
+# MAX_HALVINGS times while the cost still rises; and the fit has converged once a step is below
+# SMALL_STEP_SIGMA standard deviations of the estimate.
 LINE_SEARCH_BELOW = 0.9
 MIN_FRACTION = 0.1
 MAX_HALVINGS = 10
 SMALL_STEP_SIGMA = 1e-4
-MAX_CONTRACTION = 0.5
-COVARIANCE_RTOL = 1e-7
 _RHS = np.concatenate([np.zeros((6, 1)), np.eye(6)], axis=1)  # [g, I]: step and I^-1 at once
 
 
@@ -54,20 +51,17 @@ def refine(f: Frame, use: np.ndarray, r0_mci_m: np.ndarray, q0_mci_from_body: np
            step_tol_m: float, max_iterations: int) -> PoseEstimate:
     """Gauss-Newton on the frame `f` (the rows `use` of the estimator's inputs) from the pose
     (r0, q0): steps I^-1 g on (dr, dtheta), R <- R Exp(dtheta), each shortened by a line search
-    where the cost departs from the linear model's. Stops when (a) the step, or while the steps
-    contract by q <= MAX_CONTRACTION (their I-norms' ratio) the a posteriori bound q / (1 - q)
-    of the rest of the way of a contraction, is below SMALL_STEP_SIGMA standard deviations
-    (sqrt(step^T I step)); weak bearings-only geometries (4-5 craters) converge only linearly;
-    or (b) the position step is at most `step_tol_m` (m) and the attitude step moves no crater
-    by more than that, or both are at their rounding floor (ROUNDING_FACTOR,
-    `measurement.rounding_level`).
+    where the cost departs from the linear model's. Stops when (a) the step is below
+    SMALL_STEP_SIGMA of its own standard deviation (sqrt(step^T I step)): weak bearings-only
+    geometries (4-5 craters) converge only linearly; or (b) the position step is at most
+    `step_tol_m` (m) and the attitude step moves no crater by more than that, or both are at
+    their rounding floor (ROUNDING_FACTOR, `measurement.rounding_level`).
     `cov` = I^-1 at the last pose (one step before the estimate, the step below tolerance);
     the estimate carries that system (`FitSystem`) for the checks."""
     x = np.array(r0_mci_m, dtype=float)
     q = np.asarray(q0_mci_from_body, dtype=float)
     ne = normal_equations(x, dcm_from_q(q), f)
     rhs = _RHS.copy()
-    shs_before = math.nan  # the previous step's, for the contraction (none before the first)
     for k in range(1, max_iterations + 1):
         h = ne.info
         rhs[:, 0] = ne.gradient
@@ -84,11 +78,6 @@ def refine(f: Frame, use: np.ndarray, r0_mci_m: np.ndarray, q0_mci_from_body: np
         q_full /= math.sqrt(float(q_full @ q_full))
         shs = float(step @ ne.gradient)  # step^T I step, I step = g
         done = shs <= SMALL_STEP_SIGMA**2
-        if not done and shs < shs_before:  # the covariance, one step back, still holds
-            ratio = math.sqrt(shs / shs_before)
-            done = ratio <= MAX_CONTRACTION \
-                and (ratio / (1.0 - ratio))**2 * shs <= SMALL_STEP_SIGMA**2 \
-                and dth <= COVARIANCE_RTOL and dx <= COVARIANCE_RTOL * float(ne.rho_pred_m.min())
         if not done:
             d = sol[:, 1:].diagonal().tolist()
             rho_max = float(ne.rho_pred_m.max())
@@ -106,7 +95,6 @@ def refine(f: Frame, use: np.ndarray, r0_mci_m: np.ndarray, q0_mci_from_body: np
             return PoseEstimate(Status.OK.value, x_full, positive_scalar(q_full), cov,
                                 np.full((3, 3), np.nan), k, use, fit)
         x, q, ne = _line_search(f, x, q, step, ne.cost, shs, x_full, q_full)
-        shs_before = shs
     return failed(Status.NOT_CONVERGED, use, max_iterations)
 
 
