@@ -125,14 +125,11 @@ def planar_pose(c_mci_m: np.ndarray, u_body: np.ndarray) -> tuple[np.ndarray, np
             b3 = _cross(b1, b2)
         else:  # the rotation nearest [a1, a2, a1 x a2] / ks = R^T [ex, ey, ez]
             ks = math.sqrt(math.sqrt(_dot(a1, a1) * _dot(a2, a2)))
-            c1, c2, c3 = a1, a2, _scaled(_cross(a1, a2), 1.0 / ks)
-            # R = [ex, ey, ez] (columns) @ [c1, c2, c3]^T / ks
-            q = _nearest_quaternion([[(ex[i] * c1[j] + ey[i] * c2[j] + ez[i] * c3[j]) / ks
-                                      for j in range(3)] for i in range(3)])
-            col = list(zip(*dcm_from_q(q).tolist(), strict=True))  # columns of R
-            b1 = (_dot(col[0], ex), _dot(col[1], ex), _dot(col[2], ex))
-            b2 = (_dot(col[0], ey), _dot(col[1], ey), _dot(col[2], ey))
-            b3 = (_dot(col[0], ez), _dot(col[1], ez), _dot(col[2], ez))
+            c3 = _scaled(_cross(a1, a2), 1.0 / ks)
+            # R = [ex, ey, ez] @ [a1, a2, c3]^T / ks: rows ex_i a1 + ey_i a2 + ez_i c3
+            q = _nearest_quaternion(np.array([ex, ey, ez]).T @ np.array([a1, a2, c3]) / ks)
+            rt = dcm_from_q(q).T  # R^T: b1, b2, b3 = R^T ex, R^T ey, R^T ez
+            (b1, b2, b3) = (rt @ np.array([ex, ey, ez]).T).T.tolist()
         kappa = 0.5 * (_dot(b1, a1) + _dot(b2, a2)) / scale
         # o - r = R a3 / kappa = [ex, ey, ez] [b1, b2, b3]^T a3 / kappa
         lx, ly, lz = _dot(b1, a3) / kappa, _dot(b2, a3) / kappa, _dot(b3, a3) / kappa
@@ -161,11 +158,11 @@ def _unit(a: tuple[float, ...]) -> tuple[float, float, float]:
     return _scaled(a, 1.0 / math.sqrt(_dot(a, a)))
 
 
-def _nearest_quaternion(d: list[list[float]]) -> np.ndarray:
-    """q_a_from_b (4,) (scalar-last, w >= 0) of the rotation nearest a matrix d ~ dcm_a_from_b
-    (rows; Bar-Itzhack 2000): the leading eigenvector of K = (4 q q^T - I) / 3 written in d's
-    entries."""
-    (a, b, c), (e, f, g), (h, i, j) = d
+def _nearest_quaternion(d: np.ndarray) -> np.ndarray:
+    """q_a_from_b (4,) (scalar-last, w >= 0) of the rotation nearest a matrix d (3, 3) ~
+    dcm_a_from_b (Bar-Itzhack 2000): the leading eigenvector of K = (4 q q^T - I) / 3 written
+    in d's entries."""
+    (a, b, c), (e, f, g), (h, i, j) = d.tolist()
     k = np.array([[a - f - j, e + b, h + c, i - g],
                   [e + b, f - a - j, i + g, c - h],
                   [h + c, i + g, j - a - f, e - b],
