@@ -4,9 +4,13 @@
   `ESTIMATORS` (method name -> class); a new estimator is a new module with a subclass.
 - `position`: closed-form start and range Gauss-Newton (Eq. 12-14); `quest`: QUEST, its
   covariance and position sensitivity; `paper`: the paper's method; `joint`: joint ML pose.
-- `bearings`: P3P and the cold start from bearings alone (joint without ranges, RANSAC).
+- `bearings`: P3P and the cold starts from bearings alone (joint without ranges, RANSAC): the
+  craters' plane (`planar_pose`, a homography) and P3P candidates.
+- `safeguarded`: the joint's Gauss-Newton from starts far from the minimum (line search, closed-
+  form normal equations of `measurement`, LAPACK called directly).
 - `robust`: RANSAC and the chi-square refit gate; `information`: Fisher information and CRLB;
-  `checks`: the consistency, surface and conditioning checks on every final estimate.
+  `checks`: the consistency, surface and conditioning checks on every final estimate (on the
+  fit's own last system when it has one, `FitSystem`).
 
 Measurement model (paper Eq. 10-11, ERRATA 6) in `pipeline.core.estimation.measurement`: noise one
 number

@@ -7,11 +7,13 @@ right (body-frame) attitude perturbations R_est = R_true Exp([dtheta]x), as `mea
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import numpy as np
+from scipy.linalg import lapack
 
 from pipeline.core.estimation.measurement import Sigma
 
@@ -29,6 +31,19 @@ ROUNDING_FACTOR = 10.0
 EPS = float(np.finfo(float).eps)
 
 
+class FitSystem(NamedTuple):
+    """What a Gauss-Newton fit of the whole pose leaves for the checks of its estimate
+    (`checks.check_estimate`, which then evaluates no model of its own): its last system, at the
+    pose one step (below tolerance) before the estimate, over the rows the fit used."""
+
+    info: np.ndarray  # (6, 6) sum J^T J there, of [position MCI (m), dtheta body (rad)]
+    condition: float  # Jacobi-scaled condition number of info, or an upper bound of it
+    cost: float  # e^T e - g^T step: the cost of the linearised model at the estimate
+    shift: float  # step^T info step: the estimate's squared distance from that pose, in sigma
+    rho_pred_m: np.ndarray  # (n_used,) predicted ranges (m)
+    cos_pred: np.ndarray  # (n_used,) cosine between each measured and predicted bearing
+
+
 @dataclass(frozen=True)
 class PoseEstimate:
     """One frame's pose estimate; NaN pose and covariances unless `status == "ok"`."""
@@ -40,6 +55,7 @@ class PoseEstimate:
     att_cov_quest: np.ndarray  # (3, 3) QUEST's own dtheta covariance (paper method), rad^2
     iterations: int  # Gauss-Newton iterations of the method itself
     inliers: np.ndarray  # (n,) bool: rows used by the final fit (or the failed attempt)
+    system: FitSystem | None = None  # the fit's last system (joint), else None
 
 
 @dataclass(frozen=True)
@@ -88,11 +104,25 @@ def prepare(c_mci_m: np.ndarray, u_body: np.ndarray, rho_m: np.ndarray
     u = np.asarray(u_body, dtype=float).reshape(-1, 3)
     rho = np.asarray(rho_m, dtype=float).reshape(-1)
     norm = np.sqrt(np.einsum("ij,ij->i", u, u))
+    # the usual frame, every row good (a finite sum, positive norms and ranges), in few passes
+    if (rho.size and math.isfinite(float(c.sum()) + float(norm.sum()))
+            and float(norm.min()) > 0.0
+            and ((float(rho.min()) > 0.0 and math.isfinite(float(rho.max())))
+                 or bool(np.isnan(rho).all()))):
+        return c, u / norm[:, None], rho, np.ones(rho.size, dtype=bool)
     valid = np.isfinite(c).all(axis=1) & np.isfinite(norm) & (norm > 0) \
         & ((np.isfinite(rho) & (rho > 0)) | np.isnan(rho))
     with np.errstate(invalid="ignore", divide="ignore"):
         u = u / norm[:, None]
     return c, u, rho, valid
+
+
+def select_rows(use: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The rows `use` (n,) bool of each array: a[use], or the arrays themselves when every row is
+    used (the same values, without the copies)."""
+    if use.all():
+        return arrays
+    return tuple(a[use] for a in arrays)
 
 
 def failed(status: str, inliers: np.ndarray, iterations: int) -> PoseEstimate:
@@ -106,13 +136,40 @@ def inverse_if_well_conditioned(h: np.ndarray, max_condition: float = MAX_CONDIT
                                 ) -> np.ndarray | None:
     """Inverse of a symmetric positive definite normal matrix, or None when its Jacobi-scaled
     condition number exceeds `max_condition` (or it is singular or not finite)."""
-    diag = np.diag(h)
-    if not (np.all(np.isfinite(h)) and np.all(diag > 0)):
-        return None
+    inverse, _ = scaled_inverse(h, max_condition)
+    return inverse
+
+
+def scaled_inverse(h: np.ndarray, max_condition: float = MAX_CONDITION, *,
+                   direct: bool = False) -> tuple[np.ndarray | None, tuple[float, float]]:
+    """`inverse_if_well_conditioned` and the smallest and largest eigenvalue of h Jacobi-scaled
+    (unit diagonal; NaN when h is not finite or its diagonal not positive), from one symmetric
+    eigendecomposition: numpy's (the estimates' arithmetic), or with `direct` LAPACK's dsyevd
+    called through scipy without numpy's wrapper (for decisions: equal to rounding)."""
+    diag = h.diagonal()
+    if not (np.isfinite(h).all() and (diag > 0).all()):
+        return None, (math.nan, math.nan)
     s = 1.0 / np.sqrt(diag)
     outer = s[:, None] * s[None, :]
-    ev, vec = np.linalg.eigh(h * outer)
+    if direct:
+        ev, vec, info = lapack.dsyevd(h * outer)
+        if info != 0:
+            return None, (math.nan, math.nan)
+    else:
+        ev, vec = np.linalg.eigh(h * outer)
+    extremes = (float(ev[0]), float(ev[-1]))
     if not ev[0] > ev[-1] / max_condition:
-        return None
-    return (vec / ev) @ vec.T * outer
+        return None, extremes
+    return (vec / ev) @ vec.T * outer, extremes
 
+
+def scaled_condition(h: np.ndarray) -> float:
+    """The condition number of a symmetric matrix h Jacobi-scaled (unit diagonal), from its
+    eigenvalues (LAPACK dsyevd, called directly); inf when h is not finite, its diagonal not
+    positive or the scaled matrix not positive definite."""
+    d = h.diagonal()
+    if not (np.isfinite(h).all() and (d > 0).all()):
+        return math.inf
+    s = 1.0 / np.sqrt(d)
+    ev, _, info = lapack.dsyevd(h * (s[:, None] * s[None, :]), compute_v=0)
+    return float(ev[-1] / ev[0]) if info == 0 and ev[0] > 0 else math.inf

@@ -25,25 +25,29 @@ The noise is one number or one value per crater (`measurement.Sigma`) for the ro
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
+from scipy.linalg import lapack
 from scipy.stats import chi2
 
 from pipeline.core.estimation.estimators.base import (
     MAX_CONDITION,
     PoseEstimate,
     failed,
-    inverse_if_well_conditioned,
+    scaled_condition,
+    scaled_inverse,
+    select_rows,
 )
 from pipeline.core.estimation.measurement import (
     Sigma,
-    measurement_count,
+    frame,
+    normal_equations,
     per_crater,
-    predict,
-    whitened_system,
 )
+from pipeline.core.math.rotations import dcm_from_q
 from pipeline.core.scoring.status import Status
 
 
@@ -80,63 +84,95 @@ def check_estimate(est: PoseEstimate, c_mci_m: np.ndarray, u_body: np.ndarray, r
     (NaN pose and covariances, same `inliers` and `iterations`) with the first failing status.
     Inputs as the estimator saw them: craters (n, 3) (MCI, m), unit bearings (n, 3) (body) and
     ranges (n,) (m, NaN: no range), noise a number or (n,) per row; only the rows `est.inliers`
-    are used."""
+    are used.
+
+    An estimate with the `system` of its fit (the joint's Gauss-Newton) is checked on that
+    system, at the pose one step (below tolerance) before it: its information and the scaled
+    eigenvalues already computed, its covariance the bound, its linearised cost and step the
+    residual tests. Any other (the paper's) is checked on the normal equations at the estimate
+    (`measurement.normal_equations`)."""
     if est.status != Status.OK:
         return est
     use = est.inliers
-    c, u, rho = c_mci_m[use], u_body[use], rho_m[use]
-    r, q = est.r_mci_m, est.q_mci_from_body
-    with np.errstate(all="ignore"):
-        e, jac, rho_pred = whitened_system(r, q, c, u, rho,
-                                           sigma_bearing=per_crater(sigma_bearing, use),
-                                           sigma_range_m=per_crater(sigma_range_m, use))
-        rows = jac.reshape(-1, 6)
-        info = rows.T @ rows
-        bound = inverse_if_well_conditioned(info, options.max_condition)
-        missing = np.isnan(rho)
-        nearest = np.where(missing, rho_pred, rho) if missing.any() else rho
-        if bound is None or not _linear(bound, nearest, options.max_relative_sigma):
-            return failed(Status.ILL_CONDITIONED, use, est.iterations)
-        u_pred, _ = predict(r, q, c)
-        radius = options.moon_radius_m
-        ahead = options.boresight_body is None or bool(np.all(u @ options.boresight_body > 0.0))
-        if not (ahead and np.all(np.einsum("ij,ij->i", u_pred, u) > 0.0)
-                and (radius is None or float(r @ r) >= (radius - options.surface_margin_m)**2)):
-            return failed(Status.BELOW_SURFACE, use, est.iterations)
-        if not _consistent(e, rows, info, est.cov, options.consistency_probability,
-                           measurement_count(rho)):
-            return failed(Status.INCONSISTENT, use, est.iterations)
+    c, u, rho = select_rows(use, c_mci_m, u_body, rho_m)
+    r = est.r_mci_m
+    fit = est.system
+    if fit is None:
+        with np.errstate(all="ignore"):
+            ne = normal_equations(r, dcm_from_q(est.q_mci_from_body), frame(
+                c, u, rho, per_crater(sigma_bearing, use), per_crater(sigma_range_m, use)))
+        bound, _ = scaled_inverse(ne.info, options.max_condition, direct=True)
+        rho_pred, cos_pred = ne.rho_pred_m, ne.cos_pred
+    else:
+        well = fit.condition <= options.max_condition \
+            or scaled_condition(fit.info) <= options.max_condition
+        bound = est.cov if well else None
+        rho_pred, cos_pred = fit.rho_pred_m, fit.cos_pred
+    missing = np.isnan(rho)
+    n_missing = int(np.count_nonzero(missing))
+    if n_missing == 0:
+        nearest = float(rho.min())
+    else:  # the predicted range of a crater without one
+        nearest = float((rho_pred if n_missing == rho.size
+                         else np.where(missing, rho_pred, rho)).min())
+    if bound is None or not _linear(bound, nearest, options.max_relative_sigma):
+        return failed(Status.ILL_CONDITIONED, use, est.iterations)
+    radius = options.moon_radius_m
+    ahead = options.boresight_body is None \
+        or float((u @ options.boresight_body).min()) > 0.0
+    if not (ahead and float(cos_pred.min()) > 0.0
+            and (radius is None or float(r @ r) >= (radius - options.surface_margin_m)**2)):
+        return failed(Status.BELOW_SURFACE, use, est.iterations)
+    if fit is None:
+        with np.errstate(all="ignore"):
+            cost, shift = _linearised(ne.info, ne.gradient, ne.cost, bound, est.cov)
+    else:
+        cost, shift = fit.cost, fit.shift
+    if not _consistent(cost, shift, options.consistency_probability,
+                       3 * rho.size - n_missing):
+        return failed(Status.INCONSISTENT, use, est.iterations)
     return est
 
 
-def _linear(bound: np.ndarray, rho_m: np.ndarray, max_relative_sigma: float) -> bool:
+def _linear(bound: np.ndarray, nearest_m: float, max_relative_sigma: float) -> bool:
     """Whether the bound (6, 6) is small enough for the model to be linear over it: largest
-    position 1-sigma over the smallest range, and largest attitude 1-sigma (rad), both at most
-    `max_relative_sigma` (the second-order terms of h are that fraction of the first-order)."""
+    position 1-sigma over the smallest range `nearest_m` (m), and largest attitude 1-sigma
+    (rad), both at most `max_relative_sigma` (the second-order terms of h are that fraction of
+    the first-order). A block's largest eigenvalue is at most its trace, so a trace below the
+    limit decides without the eigenvalues."""
+    limit_r = max_relative_sigma * nearest_m
+    d = bound.diagonal().tolist()
+    if (d[0] + d[1] + d[2] <= limit_r**2 * (1.0 - 1e-9)
+            and d[3] + d[4] + d[5] <= max_relative_sigma**2 * (1.0 - 1e-9)):
+        return True
     sig_r = float(np.sqrt(np.linalg.eigvalsh(bound[:3, :3])[-1]))
     sig_theta = float(np.sqrt(np.linalg.eigvalsh(bound[3:, 3:])[-1]))
-    return sig_r <= max_relative_sigma * float(rho_m.min()) and sig_theta <= max_relative_sigma
+    return sig_r <= limit_r and sig_theta <= max_relative_sigma
 
 
-def _consistent(e: np.ndarray, jac_rows: np.ndarray, info: np.ndarray, cov: np.ndarray,
-                probability: float, measurements: int) -> bool:
-    """The residual tests at a pose estimate: whitened residuals e (N, 4) (zero for a missing
-    range), Jacobian J as rows (4N, 6), information I = J^T J (6, 6), the estimate's covariance
-    (6, 6), and the number M of scalar measurements present (`measurement_count`).
+def _linearised(info: np.ndarray, gradient: np.ndarray, cost: float, bound: np.ndarray,
+                cov: np.ndarray) -> tuple[float, float]:
+    """The residual tests' quantities at a pose estimate from its normal equations (information
+    I (6, 6), gradient g = sum J^T e (6,), cost e^T e), I^-1 (`bound`) and the estimate's
+    covariance (6, 6): the linearised best pose is one Gauss-Newton step delta = I^-1 g away,
+    with the cost e^T e - g^T delta, at the distance delta^T cov^-1 delta (NaN when cov is
+    singular)."""
+    delta = bound @ gradient
+    _, _, solved, info = lapack.dgesv(cov, delta)  # LU, as np.linalg.solve, without its wrapper
+    shift = float(delta @ solved) if info == 0 else math.nan
+    return cost - float(gradient @ delta), shift
 
-    The linearised best pose is one Gauss-Newton step delta = I^-1 sum J^T e away. Its cost
-    e^T e - g^T delta (g = sum J^T e) is chi-square with M - 6 dof (the measurements fit some
-    pose); and delta^T cov^-1 delta is at most chi-square with 6 dof (the estimate is as close to
-    that pose as its covariance claims: cov(x_est - x_ML) = cov - I^-1 for an efficient ML). An
-    ML estimate (joint) has delta ~ 0; the paper's method is not one, so its own cost can exceed
-    the 3N - 6 quantile on good frames while both tests hold."""
-    g = jac_rows.T @ e.reshape(-1)
-    try:
-        delta = np.linalg.solve(info, g)
-        shift = float(delta @ np.linalg.solve(cov, delta))
-    except np.linalg.LinAlgError:
-        return False
-    cost = float(np.sum(e * e)) - float(g @ delta)
+
+def _consistent(cost: float, shift: float, probability: float, measurements: int) -> bool:
+    """The residual tests at a pose estimate, from the cost of the linearised best pose and the
+    estimate's distance from it (`_linearised`, or a fit's `FitSystem`), with M scalar
+    measurements present (`measurement_count`).
+
+    The cost is chi-square with M - 6 dof (the measurements fit some pose); the distance is at
+    most chi-square with 6 dof (the estimate is as close to that pose as its covariance claims:
+    cov(x_est - x_ML) = cov - I^-1 for an efficient ML). An estimate that is not the ML (the
+    paper's method) is judged by both: its own cost can exceed the M - 6 quantile on good frames
+    while both tests hold."""
     dof = measurements - 6  # none when the measurements determine the pose exactly
     return ((dof <= 0 or cost <= _chi2_threshold(probability, dof))
             and shift <= _chi2_threshold(probability, 6))

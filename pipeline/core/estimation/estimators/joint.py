@@ -5,7 +5,6 @@ estimate when at least 3 craters have ranges, else from the prior or a P3P pose 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
 from typing import ClassVar
@@ -17,33 +16,34 @@ from pipeline.core.estimation.estimators.base import (
     EPS,
     ROUNDING_FACTOR,
     Estimator,
+    FitSystem,
     PoseEstimate,
     failed,
-    inverse_if_well_conditioned,
+    scaled_inverse,
+    select_rows,
 )
-from pipeline.core.estimation.estimators.bearings import bearings_candidates
+from pipeline.core.estimation.estimators.bearings import bearings_candidates, planar_pose
 from pipeline.core.estimation.estimators.paper import PaperEstimator
 from pipeline.core.estimation.estimators.quest import quest
+from pipeline.core.estimation.estimators.safeguarded import refine as safeguarded_refine
 from pipeline.core.estimation.measurement import (
-    Sigma,
+    frame,
     line_of_sight,
     measurement_count,
     per_crater,
+    rounding_level,
     squared_normalised_residuals,
-    whitened_system,
+    whitened_system_from_los,
 )
-from pipeline.core.math.rotations import positive_scalar, q_exp, q_from_dcm, q_multiply
+from pipeline.core.math.rotations import (
+    dcm_from_q,
+    positive_scalar,
+    q_exp,
+    q_from_dcm,
+    q_multiply,
+)
 from pipeline.core.scoring.status import Status
 
-# Safeguarded Gauss-Newton (`JointEstimator.refine`, for starts other than the paper's): a step
-# is shortened to the minimum of the parabola through the costs (`_line_search`) when that is
-# below LINE_SEARCH_BELOW of it, but not below MIN_FRACTION, then halved at most MAX_HALVINGS
-# times while the cost still rises; and the fit has converged once a step is below
-# SMALL_STEP_SIGMA standard deviations of the estimate.
-LINE_SEARCH_BELOW = 0.9
-MIN_FRACTION = 0.1
-MAX_HALVINGS = 10
-SMALL_STEP_SIGMA = 1e-4
 # Cold start without the paper's estimate (`JointEstimator._cold`): P3P candidates refined at
 # most; measurement count up to which other minima are searched (4 craters with bearings only);
 # the chi-square tail bounding the candidates worth refining there; and the cost difference
@@ -155,24 +155,35 @@ class JointEstimator(Estimator):
 
     def _cold(self, c_mci_m: np.ndarray, u_body: np.ndarray, rho_m: np.ndarray,
               use: np.ndarray) -> PoseEstimate:
-        """The cold start from P3P candidates (`bearings.bearings_candidates`), lowest cost
-        first. The first is refined, and the next ones while no fit has succeeded (at most
-        MAX_STARTS). With few measurements (at most RIVAL_SEARCH_MEASUREMENTS: 4 craters without
+        """The cold start: with 5 craters or more (more than RIVAL_SEARCH_MEASUREMENTS), first
+        from the craters' plane (`bearings.planar_pose`), kept when it converges to a cost
+        within the chi-square bound of all measurements (AMBIGUITY_TAIL); else from P3P
+        candidates (`bearings.bearings_candidates`), lowest cost first. The first is refined,
+        and the next ones while no fit has succeeded (at most MAX_STARTS). With few
+        measurements (at most RIVAL_SEARCH_MEASUREMENTS: 4 craters without
         ranges) every candidate whose cost is below the chi-square bound of all measurements
         (AMBIGUITY_TAIL) is refined too, and the fit with the lowest cost is kept, unless a
         distinct minimum comes within AMBIGUITY_COST of it: `ambiguous`. Three craters without
         ranges (6 measurements for 6 unknowns) are `ambiguous` outright."""
         o = self.options
-        cs, us, rs = c_mci_m[use], u_body[use], rho_m[use]
+        cs, us, rs = select_rows(use, c_mci_m, u_body, rho_m)
+        measurements = measurement_count(rs)
+        search = measurements <= RIVAL_SEARCH_MEASUREMENTS
+        bound = _chi2_isf(AMBIGUITY_TAIL, measurements)
+        if not search:  # 5 craters or more: the plane's closed form first
+            start = planar_pose(cs, us)
+            if start is not None:
+                est = self.refine(c_mci_m, u_body, rho_m, use, _start(*start, use),
+                                  safeguarded=True)
+                if est.status == Status.OK and est.system is not None \
+                        and est.system.cost <= bound:
+                    return est
         sigma_b, sigma_r = per_crater(o.sigma_bearing, use), per_crater(o.sigma_range_m, use)
         costs, r0, dcm0 = bearings_candidates(cs, us, rs, sigma_b, sigma_r)
         if costs.size == 0:
             return failed(Status.DEGENERATE, use, 0)
-        measurements = measurement_count(rs)
         if measurements <= 6:
             return failed(Status.AMBIGUOUS, use, 0)
-        search = measurements <= RIVAL_SEARCH_MEASUREMENTS
-        bound = _chi2_isf(AMBIGUITY_TAIL, measurements)
         fits: list[tuple[float, PoseEstimate]] = []
         first_failure: PoseEstimate | None = None
         for i in range(min(costs.size, MAX_STARTS)):
@@ -205,96 +216,69 @@ class JointEstimator(Estimator):
         """Gauss-Newton over the rows `use` from `initial`; a non-ok `initial` gives its status
         (iterations 0). Stops when the position step is at most `step_tol_m` (m) and the attitude
         step moves no predicted crater by more than that (or both are at their rounding floor).
+        The estimate carries its last system (`FitSystem`) for the checks.
 
-        `safeguarded` (for starts that may be far from the minimum: P3P or a prior, not the
-        paper's estimate): a step whose cost departs from the linear model's is shortened by a
-        line search (`_line_search`), and the fit also stops once the step is below
-        SMALL_STEP_SIGMA of its own standard deviation (sqrt(step^T I step)): weak bearings-only
-        geometries (4-5 craters, sigma of kilometres) converge only linearly. Without it the
-        iteration is exactly the original one (the paper's scenario keeps its bits)."""
+        `safeguarded` (for starts that may be far from the minimum: P3P, the craters' plane or
+        a prior, not the paper's estimate): `safeguarded.refine`, with a line search and a stop
+        on the step in its own standard deviations. Without it the iteration is exactly the
+        original one, on the whitened Jacobian (the paper's scenario keeps its bits)."""
         o = self.options
         if initial.status != Status.OK:
             return failed(initial.status, use, 0)
-        cs, us, rs = c_mci_m[use], u_body[use], rho_m[use]
+        cs, us, rs = select_rows(use, c_mci_m, u_body, rho_m)
         sigma_b, sigma_r = per_crater(o.sigma_bearing, use), per_crater(o.sigma_range_m, use)
-        has_range = ~np.isnan(rs)
+        f = frame(cs, us, rs, sigma_b, sigma_r)
+        if safeguarded:
+            return safeguarded_refine(f, use, initial.r_mci_m, initial.q_mci_from_body,
+                                      step_tol_m=o.step_tol_m, max_iterations=o.max_iterations)
         # the paper's scenario (one sigma each, every range) keeps its original arithmetic
-        simple = np.ndim(sigma_b) == 0 and np.ndim(sigma_r) == 0 and bool(has_range.all())
-
-        def system(x: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            return whitened_system(x, q, cs, us, rs, sigma_bearing=sigma_b,
-                                   sigma_range_m=sigma_r)
-
+        simple = np.ndim(sigma_b) == 0 and np.ndim(sigma_r) == 0 and not np.isnan(rs).any()
         x = initial.r_mci_m.copy()
         q = initial.q_mci_from_body
-        ahead = None  # the system at the pose the line search accepted
+        missing = np.isnan(rs)
+        missing_rows = missing if missing.any() else None
         for k in range(1, o.max_iterations + 1):
-            e, jac, rng_m = system(x, q) if ahead is None else ahead
+            w, rng_m = line_of_sight(x, cs)
+            e, jac, u_pred = whitened_system_from_los(w, rng_m, dcm_from_q(q), us, rs, sigma_b,
+                                                      sigma_r, missing_rows)
             jac_rows = jac.reshape(-1, 6)
             h = jac_rows.T @ jac_rows
             try:
                 h_inv = np.linalg.inv(h)
             except np.linalg.LinAlgError:
                 return failed(Status.DEGENERATE, use, k)
-            step = h_inv @ (jac_rows.T @ e.reshape(-1))
-            with np.errstate(over="ignore"):  # finite entries can overflow the norm
-                if not np.isfinite(float(step @ step)):
-                    return failed(Status.DEGENERATE, use, k)
+            gradient = jac_rows.T @ e.reshape(-1)
+            step = h_inv @ gradient
+            s0, s1, s2, s3, s4, s5 = step.tolist()
+            dx2, dth2 = s0 * s0 + s1 * s1 + s2 * s2, s3 * s3 + s4 * s4 + s5 * s5
+            if not math.isfinite(dx2 + dth2):
+                return failed(Status.DEGENERATE, use, k)
             x_full = x + step[:3]
             q_full = q_multiply(q, q_exp(step[3:]))
             q_full /= math.sqrt(float(q_full @ q_full))
-            dx, dth = math.sqrt(float(step[:3] @ step[:3])), math.sqrt(float(step[3:] @ step[3:]))
+            dx, dth = math.sqrt(dx2), math.sqrt(dth2)
             # whitened rounding level of the residuals, propagated to each block of the step
             rho_max = float(rng_m.max())
             if simple:
                 level = max(rho_max / o.sigma_range_m, 1.0 / o.sigma_bearing)
             else:
-                level = _rounding_level(rng_m, has_range, sigma_b, sigma_r)
+                level = rounding_level(f, rng_m)
             noise = ROUNDING_FACTOR * EPS * level
-            diag = np.abs(np.diag(h_inv))
-            if ((dx <= max(o.step_tol_m, noise * math.sqrt(diag[:3].sum()))
-                    and dth <= max(o.step_tol_m / rho_max, noise * math.sqrt(diag[3:].sum())))
-                    or (safeguarded and float(step @ h @ step) <= SMALL_STEP_SIGMA**2)):
-                cov = inverse_if_well_conditioned(h)
+            d0, d1, d2, d3, d4, d5 = h_inv.diagonal().tolist()
+            if (dx <= max(o.step_tol_m, noise * math.sqrt(abs(d0) + abs(d1) + abs(d2)))
+                    and dth <= max(o.step_tol_m / rho_max,
+                                   noise * math.sqrt(abs(d3) + abs(d4) + abs(d5)))):
+                cov, (low, high) = scaled_inverse(h)
                 if cov is None:
                     return failed(Status.DEGENERATE, use, k)
+                flat = e.reshape(-1)
+                shs = float(gradient @ step)  # step^T h step
+                fit = FitSystem(h, high / low, float(flat @ flat) - shs, shs, rng_m,
+                                np.einsum("ij,ij->i", u_pred, us))
                 return PoseEstimate(Status.OK.value, x_full, positive_scalar(q_full), cov,
-                                    np.full((3, 3), np.nan), k, use)
-            if not safeguarded:
-                x, q = x_full, q_full
-                continue
-            x, q, ahead = _line_search(system, x, q, step, float(np.sum(e * e)),
-                                       float(step @ h @ step), x_full, q_full)
+                                    np.full((3, 3), np.nan), k, use, fit)
+            x, q = x_full, q_full
         return failed(Status.NOT_CONVERGED, use, o.max_iterations)
-
-
-def _line_search(system: Callable[[np.ndarray, np.ndarray],
-                                   tuple[np.ndarray, np.ndarray, np.ndarray]],
-                 x: np.ndarray, q: np.ndarray, step: np.ndarray, cost: float, shs: float,
-                 x_full: np.ndarray, q_full: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The pose a fraction t of the Gauss-Newton `step` (6,) from (x, q) and its system.
-
-    Along the step the linearised cost is c(t) = cost - 2 t shs + t^2 shs (shs = step^T I step);
-    with the cost c(1) at the full step (x_full, q_full) in place of the model's, the parabola
-    through c(0), c'(0) and c(1) has its minimum at t = shs / (c(1) - cost + 2 shs). A full
-    step is taken when t >= LINE_SEARCH_BELOW (the model holds), else t (at least MIN_FRACTION),
-    halved while the cost is above `cost` (at most MAX_HALVINGS times)."""
-    ahead = system(x_full, q_full)
-    curvature = float(np.sum(ahead[0] ** 2)) - cost + 2.0 * shs
-    t = shs / curvature if curvature * MIN_FRACTION < shs else MIN_FRACTION
-    if t >= LINE_SEARCH_BELOW:
-        return x_full, q_full, ahead
-    t = max(t, MIN_FRACTION)
-    for _ in range(MAX_HALVINGS + 1):
-        x_t = x + t * step[:3]
-        q_t = q_multiply(q, q_exp(t * step[3:]))
-        q_t /= math.sqrt(float(q_t @ q_t))
-        ahead = system(x_t, q_t)
-        if float(np.sum(ahead[0] ** 2)) <= cost:
-            break
-        t *= 0.5
-    return x_t, q_t, ahead
 
 
 @cache
@@ -310,19 +294,11 @@ def _same_minimum(a: PoseEstimate, b: PoseEstimate) -> bool:
                float(d @ np.linalg.solve(b.cov[:3, :3], d))) <= 1.0
 
 
-def _rounding_level(rho_pred_m: np.ndarray, has_range: np.ndarray, sigma_b: Sigma,
-                    sigma_r: Sigma) -> float:
-    """Largest whitened rounding error of a residual per eps: range / sigma_range over the
-    craters with a range, 1 / sigma_bearing over all."""
-    level = float(np.max(1.0 / np.asarray(sigma_b, dtype=float)))
-    if has_range.any():
-        level = max(level, float(np.max(rho_pred_m[has_range]
-                                        / per_crater(sigma_r, has_range))))
-    return level
+_NO_COV, _NO_ATT_COV = np.full((6, 6), np.nan), np.full((3, 3), np.nan)
+_NO_COV.flags.writeable = _NO_ATT_COV.flags.writeable = False
 
 
 def _start(r_mci_m: np.ndarray, q_mci_from_body: np.ndarray, use: np.ndarray) -> PoseEstimate:
     """An initial pose for `JointEstimator.refine` (no covariance)."""
     return PoseEstimate(Status.OK.value, np.array(r_mci_m, dtype=float),
-                        np.asarray(q_mci_from_body, dtype=float), np.full((6, 6), np.nan),
-                        np.full((3, 3), np.nan), 0, use)
+                        np.asarray(q_mci_from_body, dtype=float), _NO_COV, _NO_ATT_COV, 0, use)

@@ -4,12 +4,13 @@ into the attitude."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
 
-from pipeline.core.estimation.estimators.base import Estimator, PoseEstimate, failed
+from pipeline.core.estimation.estimators.base import Estimator, PoseEstimate, failed, select_rows
 from pipeline.core.estimation.estimators.position import closed_form_position, gauss_newton_position
 from pipeline.core.estimation.estimators.quest import quest, quest_position_sensitivity
 from pipeline.core.estimation.measurement import line_of_sight, per_crater
@@ -33,15 +34,20 @@ class PaperEstimator(Estimator):
     def fit(self, c_mci_m: np.ndarray, u_body: np.ndarray, rho_m: np.ndarray, use: np.ndarray,
             r_prior_mci_m: np.ndarray | None) -> PoseEstimate:
         o = self.options
-        if use.sum() < 3:
+        n_use = int(np.count_nonzero(use))
+        if n_use < 3:
             return failed(Status.TOO_FEW_CRATERS, use, 0)
-        ranged = use & ~np.isnan(rho_m)
-        if ranged.sum() < 3:
+        has_range = ~np.isnan(rho_m)
+        ranged = use & has_range
+        n_ranged = n_use if n_use == use.size and has_range.all() else int(
+            np.count_nonzero(ranged))
+        if n_ranged < 3:
             return failed(Status.NEEDS_RANGES, use, 0)
-        cs, us, rs = c_mci_m[use], u_body[use], rho_m[use]
-        cr, rr = c_mci_m[ranged], rho_m[ranged]
+        cs, us, rs = select_rows(use, c_mci_m, u_body, rho_m)
+        cr, rr, ur = (cs, rs, us) if n_ranged == n_use else select_rows(
+            ranged, c_mci_m, rho_m, u_body)
         warm = r_prior_mci_m is not None and bool(np.all(np.isfinite(r_prior_mci_m)))
-        r0 = r_prior_mci_m if warm else closed_form_position(cr, rr, u_body[ranged])
+        r0 = r_prior_mci_m if warm else closed_form_position(cr, rr, ur)
         if r0 is None:
             return failed(Status.DEGENERATE, use, 0)
         x, cov_x, its, status = gauss_newton_position(
@@ -49,13 +55,13 @@ class PaperEstimator(Estimator):
             sigma_range_m=per_crater(o.sigma_range_m, ranged))
         if status != Status.OK:
             return failed(status, use, its)
-        ref, _ = line_of_sight(x, cs)
+        los = line_of_sight(x, cs)
         sigma_b = per_crater(o.sigma_bearing, use)
         weights = np.full(rs.size, sigma_b**-2) if np.ndim(sigma_b) == 0 else sigma_b**-2.0
-        q, att_cov = quest(us, ref, weights)
-        if not np.all(np.isfinite(att_cov)):
+        q, att_cov = quest(us, los[0], weights)
+        if math.isnan(att_cov[0, 0]):  # QUEST's covariance is all finite or all NaN
             return failed(Status.DEGENERATE, use, its)
-        g = quest_position_sensitivity(q, att_cov, x, cs, weights)
+        g = quest_position_sensitivity(q, att_cov, x, cs, weights, los)
         cov = np.empty((6, 6))
         cov[:3, :3] = cov_x
         cov[3:, :3] = g @ cov_x

@@ -60,17 +60,19 @@ def closed_form_position(c_mci_m: np.ndarray, rho_m: np.ndarray, u_body: np.ndar
     return roots[int(np.argmax(score))]
 
 
-def _sym3_inverse(h: np.ndarray) -> np.ndarray | None:
-    """Inverse of a symmetric 3x3 matrix by its adjugate; None unless the determinant and the
-    three diagonal 2x2 minors are > 0 (so the inverse has a positive diagonal even when rounding
-    makes a singular matrix look definite)."""
+def _sym3_inverse(h: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """Inverse of a symmetric 3x3 matrix by its adjugate, and its trace; None unless the
+    determinant and the three diagonal 2x2 minors are > 0 (so the inverse has a positive
+    diagonal even when rounding makes a singular matrix look definite)."""
     (a, b, c), (_, d, e), (_, _, f) = h.tolist()
     m00, m01, m02 = d * f - e * e, c * e - b * f, b * e - c * d
     det = a * m00 + b * m01 + c * m02
     m11, m12, m22 = a * f - c * c, b * c - a * e, a * d - b * b
     if not (det > 0.0 and m00 > 0.0 and m11 > 0.0 and m22 > 0.0):
         return None
-    return np.array([[m00, m01, m02], [m01, m11, m12], [m02, m12, m22]]) / det
+    i00, i01, i02, i11, i12, i22 = m00 / det, m01 / det, m02 / det, m11 / det, m12 / det, \
+        m22 / det
+    return np.array([[i00, i01, i02], [i01, i11, i12], [i02, i12, i22]]), i00 + i11 + i22
 
 
 def gauss_newton_position(c_mci_m: np.ndarray, rho_m: np.ndarray, r0_mci_m: np.ndarray,
@@ -108,19 +110,20 @@ def _weighted_gauss_newton(c: np.ndarray, rho: np.ndarray, x: np.ndarray, step_t
         # weighted copy would round differently)
         ws = w if s is None else w * (s * s)[:, None]
         h = w.T @ ws
-        h_inv = _sym3_inverse(h)
-        if h_inv is None:
+        inverse = _sym3_inverse(h)
+        if inverse is None:
             return nan_x, nan_cov, k, Status.DEGENERATE.value
+        h_inv, trace = inverse
         step = h_inv @ ((rng_m - rho) @ ws)
         x += step
-        step_m = math.sqrt(float(step @ step))
+        s0, s1, s2 = step.tolist()
+        step_m = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
         if not math.isfinite(step_m):
             return nan_x, nan_cov, k, Status.DEGENERATE.value
-        scaled = rng_m if s is None else rng_m * s
-        floor = ROUNDING_FACTOR * EPS * float(scaled.max()) * math.sqrt(h_inv.trace())
-        if step_m <= max(step_tol_m, floor):
-            h_inv = inverse_if_well_conditioned(h)
-            if h_inv is None:
+        if step_m <= step_tol_m or step_m <= ROUNDING_FACTOR * EPS * float(
+                (rng_m if s is None else rng_m * s).max()) * math.sqrt(trace):
+            cov = inverse_if_well_conditioned(h)
+            if cov is None:
                 return nan_x, nan_cov, k, Status.DEGENERATE.value
-            return x, scale**2 * h_inv, k, Status.OK.value
+            return x, scale**2 * cov, k, Status.OK.value
     return nan_x, nan_cov, max_iterations, Status.NOT_CONVERGED.value

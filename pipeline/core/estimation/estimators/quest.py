@@ -9,11 +9,12 @@ import numpy as np
 
 from pipeline.core.estimation.estimators.base import inverse_if_well_conditioned
 from pipeline.core.estimation.measurement import line_of_sight
-from pipeline.core.math.rotations import dcm_from_q, positive_scalar, skew
+from pipeline.core.math.rotations import dcm_from_q, positive_scalar
 
 # QUEST falls back to sequential rotations when |scalar part| of its quaternion is below this. At
 # least one of the four frames (as is, rotated 180 deg about x, y or z) then has |q4| >= 0.57.
 QUEST_MIN_SCALAR = 0.1
+_EYE3 = np.eye(3)
 
 
 def _quest_solve(b: np.ndarray) -> np.ndarray | None:
@@ -29,11 +30,12 @@ def _quest_solve(b: np.ndarray) -> np.ndarray | None:
     (Hamilton) quaternion it is q_ref_from_body.
     """
     s = b + b.T
-    sigma = float(b[0, 0] + b[1, 1] + b[2, 2])
-    z = np.array([b[1, 2] - b[2, 1], b[2, 0] - b[0, 2], b[0, 1] - b[1, 0]])
+    (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = b.tolist()
+    sigma = b00 + b11 + b22
+    z = np.array([b12 - b21, b20 - b02, b01 - b10])
     sz = s @ z
-    kappa = float(s[0, 0] * s[1, 1] - s[0, 1] * s[1, 0] + s[0, 0] * s[2, 2] - s[0, 2] * s[2, 0]
-                  + s[1, 1] * s[2, 2] - s[1, 2] * s[2, 1])
+    (s00, s01, s02), (s10, s11, s12), (s20, s21, s22) = s.tolist()
+    kappa = s00 * s11 - s01 * s10 + s00 * s22 - s02 * s20 + s11 * s22 - s12 * s21
     delta = float(np.linalg.det(s))
     a = sigma * sigma - kappa
     bb = sigma * sigma + float(z @ z)
@@ -57,7 +59,8 @@ def _quest_solve(b: np.ndarray) -> np.ndarray | None:
     norm = math.sqrt(float(x @ x) + gamma * gamma)
     if not norm >= QUEST_MIN_SCALAR * abs(fp) or norm == 0.0:
         return None
-    return np.concatenate([x, [gamma]]) / norm
+    x0, x1, x2 = x.tolist()
+    return np.array([x0 / norm, x1 / norm, x2 / norm, gamma / norm])
 
 
 # 180-degree rotations about x, y, z: diagonal of the DCM, and q = e_k * q' undone per axis as
@@ -83,14 +86,15 @@ def quest(b_body: np.ndarray, r_ref_mci: np.ndarray, weights: np.ndarray
     b = np.asarray(b_body, dtype=float)
     r = np.asarray(r_ref_mci, dtype=float)
     w = np.asarray(weights, dtype=float)
-    prof = (b * (w / w.sum())[:, None]).T @ r
+    w_sum = w.sum()
+    prof = (b * (w / w_sum)[:, None]).T @ r
     q = _quest_solve(prof)
     for flip, (perm, sign) in zip(_FLIPS, _UNDO, strict=True):
         if q is not None:
             break
         q_flipped = _quest_solve(prof * flip[None, :])
         q = None if q_flipped is None else q_flipped[perm] * sign
-    info = w.sum() * np.eye(3) - (b * w[:, None]).T @ b
+    info = w_sum * _EYE3 - (b * w[:, None]).T @ b
     cov = inverse_if_well_conditioned(info)
     if q is None or cov is None:
         return np.full(4, np.nan), np.full((3, 3), np.nan)
@@ -98,7 +102,8 @@ def quest(b_body: np.ndarray, r_ref_mci: np.ndarray, weights: np.ndarray
 
 
 def quest_position_sensitivity(q_mci_from_body: np.ndarray, att_cov_body: np.ndarray,
-                               r_mci_m: np.ndarray, c_mci_m: np.ndarray, weights: np.ndarray
+                               r_mci_m: np.ndarray, c_mci_m: np.ndarray, weights: np.ndarray,
+                               los: tuple[np.ndarray, np.ndarray] | None = None
                                ) -> np.ndarray:
     """d dtheta / d r (3, 3) (rad/m) of the Wahba/QUEST attitude when the references are built
     as r_ref_j = (c_j - r) / |c_j - r| from the position r (paper Sec. 4.2).
@@ -107,8 +112,9 @@ def quest_position_sensitivity(q_mci_from_body: np.ndarray, att_cov_body: np.nda
     dr / rho_j, and the optimal right perturbation solves sum w_i (I - b_i b_i^T) dtheta =
     sum w_i b_i x R^T dl_i, so d dtheta / d r = -P R^T [sum_j w_j l_j / rho_j]x, with
     P = `att_cov_body` = [sum w (I - b b^T)]^-1 and `weights` w the inverse variances (rad^-2)
-    QUEST used.
+    QUEST used. `los`: `line_of_sight(r_mci_m, c_mci_m)` when the caller has it.
     """
-    los, rng_m = line_of_sight(r_mci_m, c_mci_m)
-    s = (los * (np.asarray(weights, dtype=float) / rng_m)[:, None]).sum(axis=0)
-    return -att_cov_body @ dcm_from_q(q_mci_from_body).T @ skew(s)
+    w, rng_m = line_of_sight(r_mci_m, c_mci_m) if los is None else los
+    s0, s1, s2 = (w * (np.asarray(weights, dtype=float) / rng_m)[:, None]).sum(axis=0).tolist()
+    skew_s = np.array([[0.0, -s2, s1], [s2, 0.0, -s0], [-s1, s0, 0.0]])
+    return -att_cov_body @ dcm_from_q(q_mci_from_body).T @ skew_s
