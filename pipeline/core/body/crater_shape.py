@@ -85,8 +85,9 @@ def crater_profile(rho: np.ndarray, depth_m: np.ndarray, rim_height_m: np.ndarra
     rho_b, tau_b = np.broadcast_arrays(rho, tau)
     values = np.unique(f)
     if values.size == 1:
-        rim_basis, bowl_basis = _lookup(_diffused_tables(float(values[0]), float(ejecta_extent)),
-                                        rho_b, tau_b, float(ejecta_extent))
+        rim_basis, bowl_basis = _lookup(
+            _diffused_tables(float(values[0]), float(ejecta_extent), dtype.str),
+            rho_b, tau_b, float(ejecta_extent))
     else:
         rho_b, tau_b, f_b = np.broadcast_arrays(rho, tau, f)
         rim_basis = np.empty(rho_b.shape, dtype)
@@ -94,7 +95,7 @@ def crater_profile(rho: np.ndarray, depth_m: np.ndarray, rim_height_m: np.ndarra
         for fv in values:
             sel = f_b == fv
             rim_basis[sel], bowl_basis[sel] = _lookup(
-                _diffused_tables(float(fv), float(ejecta_extent)), rho_b[sel], tau_b[sel],
+                _diffused_tables(float(fv), float(ejecta_extent), dtype.str), rho_b[sel], tau_b[sel],
                 float(ejecta_extent))
     return (rim_height_m * rim_basis + depth_m * bowl_basis).astype(dtype, copy=False)
 
@@ -122,9 +123,12 @@ def depth_share(degradation: np.ndarray | float, floor_fraction: float = 0.0,
 
 
 @functools.lru_cache(maxsize=16)
-def _diffused_tables(floor_fraction: float, extent: float) -> tuple[np.ndarray, np.ndarray]:
-    """The rim and bowl basis shapes diffused: tables (_N_S, _N_RHO) float64 over sqrt(tau) in
-    [0, sqrt(MAX_DEGRADATION)] and rho in [0, extent]; row 0 is the fresh shape itself."""
+def _diffused_tables(floor_fraction: float, extent: float, dtype: str = "<f8"
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The rim and bowl basis shapes diffused: tables (_N_S, _N_RHO) of `dtype` over sqrt(tau)
+    in [0, sqrt(MAX_DEGRADATION)] and rho in [0, extent]; row 0 is the fresh shape itself."""
+    if dtype != "<f8":
+        return tuple(t.astype(dtype) for t in _diffused_tables(floor_fraction, extent))  # type: ignore[return-value]
     rho = np.linspace(0.0, extent, _N_RHO)
     fine = np.linspace(0.0, extent, 4 * (_N_RHO - 1) + 1)
     f = floor_fraction
@@ -150,7 +154,8 @@ def _diffused_tables(floor_fraction: float, extent: float) -> tuple[np.ndarray, 
 
 def _lookup(tables: tuple[np.ndarray, np.ndarray], rho: np.ndarray, tau: np.ndarray,
             extent: float) -> tuple[np.ndarray, np.ndarray]:
-    """Bilinear interpolation of tables (_N_S, _N_RHO) at (sqrt(tau), rho); 0 beyond extent."""
+    """Bilinear interpolation of tables (_N_S, _N_RHO) (of tau's dtype) at (sqrt(tau), rho); 0
+    beyond extent."""
     dtype = tau.dtype
     s = np.sqrt(np.clip(tau, 0.0, MAX_DEGRADATION)) * ((_N_S - 1) / np.sqrt(MAX_DEGRADATION))
     r = np.clip(rho, 0.0, extent) * ((_N_RHO - 1) / extent)
@@ -160,7 +165,7 @@ def _lookup(tables: tuple[np.ndarray, np.ndarray], rho: np.ndarray, tau: np.ndar
     k = i0 * _N_RHO + j0
     out = []
     for t in tables:
-        flat = t.astype(dtype, copy=False).ravel()
+        flat = t.ravel()
         a00, a01 = flat.take(k), flat.take(k + 1)
         a10, a11 = flat.take(k + _N_RHO), flat.take(k + _N_RHO + 1)
         a = a00 + wr * (a01 - a00)
