@@ -70,6 +70,14 @@ sql *args:
 view run="default" *args:
     {{py}} view "$@"
 
+# craters in your own images: just detect-image IMAGE... --out DIR [--sun-azimuth-deg A] [--detector classical|learned] [--labels FILE]
+detect-image *args:
+    {{py}} detect-image "$@"
+
+# train the learned crater detector (needs the `train` extra: pip install -e ".[train]"); --loo DIR for the leave-one-image-out folds
+train-detector *args:
+    python -m pipeline.train "$@"
+
 # the test suite (uses both cores: one pytest worker each, single-threaded BLAS so they do not
 # fight), but the tests marked slow (long end-to-end and real-catalogue checks: `just test-slow`,
 # both run in CI)

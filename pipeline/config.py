@@ -704,6 +704,9 @@ class IdentificationConfig:
         _check(bool(self.index_dir.strip()), k + "index_dir", "must not be empty")
 
 
+RENDER_DETECTORS = ("classical", "learned")
+
+
 @dataclass(frozen=True)
 class RenderConfig:
     """Rendered camera images (stage `render`): which frames, the terrain's roughness and the
@@ -720,6 +723,8 @@ class RenderConfig:
     bits: int
     blur_sigma_px: float
     recording_size_px: int  # side of the recording's images (JPEG)
+    detector: str  # classical | learned (`pipeline.ops.detectors`)
+    crater_age_max: float  # world craters degraded: normalised ages kappa t / R^2 in [0, max]
 
     def __post_init__(self) -> None:
         k = "render."
@@ -740,6 +745,10 @@ class RenderConfig:
         _num(self.bits, k + "bits", 8, 16)
         _num(self.blur_sigma_px, k + "blur_sigma_px", 0.0, 10.0, unit="px")
         _num(self.recording_size_px, k + "recording_size_px", 64, 4096, unit="px")
+        _check(self.detector in RENDER_DETECTORS, k + "detector",
+               f"= {self.detector!r}: must be one of {RENDER_DETECTORS}")
+        _num(self.crater_age_max, k + "crater_age_max", 0.0, 1.0,
+             why="the normalised age kappa t / R^2 (0.1 leaves a bowl a third as deep)")
 
     @property
     def enabled(self) -> bool:

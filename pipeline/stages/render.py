@@ -10,6 +10,7 @@ only
 craters.parquet (one row per true rim in view), images.parquet (per image), detection_recall.
 parquet (recall by apparent size and incidence beside the detection model's prediction),
 render.json (the headline numbers and the detection model calibrated on the pixels),
+detector_error.json (the detector's centre and size errors and false rate, `ops.detector_error`),
 contact_sheet.png and render.rrd (the images, JPEG, with the true and detected rims).
 """
 
@@ -27,8 +28,10 @@ from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.io import ephemeris
 from pipeline.io.catalogue_db import check_catalogue_unchanged, load_recorded_catalogue
+from pipeline.ops import detector_error
 from pipeline.ops import render as ops_render
 from pipeline.ops.detect import model_of, true_poses
+from pipeline.ops.detectors import make_detector
 from pipeline.viz import images, recording
 
 RENDER_TAG = 0x12E4D  # the rendering's streams (roughness, sensor noise) within the run seed
@@ -37,9 +40,12 @@ CONTACT_SHEET_FRAMES = 4
 
 def options(cfg: RunConfig) -> ops_render.RenderOptions:
     """What the renderer and the detector do (config `render`, the detector's minimum size from
-    `detection.detect_min_diameter_px`)."""
+    `detection.detect_min_diameter_px`; `render.detector` chooses it)."""
     r = cfg.render
-    return ops_render.RenderOptions(
+    detector = None if r.detector == "classical" else make_detector(
+        r.detector, min_diameter_px=cfg.detection.detect_min_diameter_px,
+        blur_sigma_px=r.blur_sigma_px)
+    return ops_render.RenderOptions(detector=detector,
         terrain=render.TerrainOptions(albedo=r.albedo,
                                       roughness_rms_slope_deg=r.roughness_rms_slope_deg),
         sensor=render.SensorOptions(read_noise_e=r.read_noise_e, full_well_e=r.full_well_e,
@@ -76,13 +82,15 @@ def run(ctx: StageContext) -> StageResult:
         t_s = chosen["t_s"].to_numpy()
         sun = ephemeris.sun_mcmf_m(cfg.trajectory.epoch_utc, t_s)
         r_mcmf, dcm_body_from_mcmf = true_poses(chosen)
+        ages = ops_render.crater_ages(len(craters.crater_id), cfg.render.crater_age_max,
+                                      phys.world_seed)
         frame = chosen["frame"].to_numpy()
         with progress_bar("rendering and detecting", chosen.height) as advance:
             for i in range(chosen.height):
                 rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(
                     cfg.seed, spawn_key=(RENDER_TAG, int(frame[i])))))
                 img = ops_render.render_and_detect(model, craters, world, r_mcmf[i],
-                                                   dcm_body_from_mcmf[i], sun[i], rng, opts)
+                                                   dcm_body_from_mcmf[i], sun[i], rng, opts, ages)
                 results.append((int(frame[i]), float(t_s[i]), img))
                 jpegs.append(images.encode_jpeg(img.image, cfg.render.recording_size_px,
                                                 cfg.render.bits))
@@ -104,6 +112,9 @@ def run(ctx: StageContext) -> StageResult:
     tx.table("images", per_image)
     tx.table("detection_recall", recall)
     tx.output("render.json").write_text(json.dumps(facts, indent=2) + "\n")
+    error_model = {"detector": cfg.render.detector,
+                   **detector_error.calibrate(truth, detections, len(results))}
+    tx.output("detector_error.json").write_text(json.dumps(error_model, indent=2) + "\n")
     images.contact_sheet(tx.output("contact_sheet.png"), sheet_images,
                          f"Rendered frames with true and detected rims ({ctx.store.run_id})",
                          cfg.render.bits)
@@ -139,7 +150,8 @@ STAGE = Stage(
            "trajectory.epoch_utc", "seed"),
     inputs=("catalogue.json", "trajectory.parquet"),
     outputs=("pixel_detections.parquet", "rendered_craters.parquet", "images.parquet",
-             "detection_recall.parquet", "render.json", "contact_sheet.png", "render.rrd"),
+             "detection_recall.parquet", "render.json", "detector_error.json",
+             "contact_sheet.png", "render.rrd"),
     code=("pipeline.stages.render",),
     run=run,
     verify=lambda ctx: check_catalogue_unchanged(ctx.input("catalogue.json")),

@@ -18,7 +18,7 @@ from pathlib import Path
 from pipeline.io.workspace import workspace
 from pipeline.train import data
 from pipeline.train.fit import TrainOptions, export, facts_of, finetune, pretrain
-from pipeline.train.scenes import SceneOptions
+from pipeline.core.sensors.scenes import SceneOptions
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
 

@@ -4,10 +4,10 @@ with CenterNet targets at stride 4.
 Targets (Zhou et al. 2019, "Objects as points"): for a crater of centre (u, v) px and radius r px
 (sqrt(a b) of the rim ellipse), the cell of its centre, (i, j) = round(v / 4 - 0.5, u / 4 - 0.5),
 peaks at 1 in a Gaussian heatmap (sigma = max(0.6, 0.2 r / 4) cells; overlapping craters keep the
-maximum), and carries the regression targets log r and the offset (u / 4 - 0.5 - j, v / 4 - 0.5 -
-i) cells. Craters too small or too degraded to be labelled reliably (rendered: D < 6 px or normalised
-age > `max_positive_age`; real: D < 8 px, where the human labels are incomplete) are *ignored*:
-no positive, and the heatmap loss is not applied within their radius.
+maximum), and carries the regression targets log r and the offset (u / 4 - 0.5 - j,
+v / 4 - 0.5 - i) cells. Craters too small or too degraded to be labelled reliably (rendered:
+D < 6 px or normalised age > `MAX_POSITIVE_AGE`; real: D < 8 px, where the human labels are
+incomplete) are *ignored*: no positive, and the heatmap loss is not applied within their radius.
 
 Real images: `lro_nac_craters`-style folders (8-bit PNG + CSV `ID,X,Y,W,H,C_X,CY`, a circle of
 centre (C_X, CY) and diameter (W + H) / 2 px; pixel (0, 0) the corner of the first pixel).
@@ -25,7 +25,7 @@ from PIL import Image
 from scipy import ndimage
 
 from pipeline.core.vision.detectors.learned import STRIDE, normalise
-from pipeline.train.scenes import SceneOptions, render_scene, scene_rng
+from pipeline.core.sensors.scenes import SceneOptions, render_scene, scene_rng
 
 MIN_RENDERED_DIAM_PX = 6.0
 MIN_REAL_DIAM_PX = 8.0

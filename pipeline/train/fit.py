@@ -2,7 +2,7 @@
 ONNX with a JSON of how it was trained.
 
 Two phases (fixed step counts, so the same seed gives the same weights on the same machine):
-1. synthetic: crops of rendered scenes (`pipeline.train.scenes`, domain-randomised, with degraded
+1. synthetic: crops of rendered scenes (`pipeline.core.sensors.scenes`, domain-randomised, with degraded
    craters), `steps_synthetic` steps;
 2. mixed: half the batch crops of the real labelled images (all but the left-out ones), half
    rendered, `steps_real` steps, from phase 1's weights.
@@ -27,7 +27,7 @@ import torch
 
 from pipeline.train import data
 from pipeline.train.model import CHANNELS, OUTPUTS, STRIDE, CraterNet
-from pipeline.train.scenes import SceneOptions
+from pipeline.core.sensors.scenes import SceneOptions
 
 
 @dataclass(frozen=True)

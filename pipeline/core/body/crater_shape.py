@@ -94,9 +94,9 @@ def crater_profile(rho: np.ndarray, depth_m: np.ndarray, rim_height_m: np.ndarra
         bowl_basis = np.empty(rho_b.shape, dtype)
         for fv in values:
             sel = f_b == fv
-            rim_basis[sel], bowl_basis[sel] = _lookup(
-                _diffused_tables(float(fv), float(ejecta_extent), dtype.str), rho_b[sel], tau_b[sel],
-                float(ejecta_extent))
+            tables = _diffused_tables(float(fv), float(ejecta_extent), dtype.str)
+            rim_basis[sel], bowl_basis[sel] = _lookup(tables, rho_b[sel], tau_b[sel],
+                                                      float(ejecta_extent))
     return (rim_height_m * rim_basis + depth_m * bowl_basis).astype(dtype, copy=False)
 
 

@@ -47,6 +47,7 @@ from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors.camera import PixelCamera, ray_sphere_distance
 from pipeline.core.sensors.conics import ellipse_from_conic
 from pipeline.core.vision.detectors.base import Detections, suppress_duplicates
+from pipeline.core.vision.sun_direction import estimate_sun_direction
 
 
 @dataclass(frozen=True)
@@ -394,13 +395,17 @@ def detect_craters(image: np.ndarray, sun_dir_image: np.ndarray,
 
 @dataclass(frozen=True)
 class ClassicalDetector:
-    """The crescent-pairing detector behind the `Detector` interface (it needs the Sun's image
-    direction)."""
+    """The crescent-pairing detector behind the `Detector` interface; without the Sun's image
+    direction it estimates it from the image (`sun_direction.estimate_sun_direction`) and finds
+    nothing when the image shows no reliable cue."""
 
     name: ClassVar[str] = "classical"
     options: DetectOptions = DetectOptions()
 
     def detect(self, image: np.ndarray, sun_dir_image: np.ndarray | None = None) -> Detections:
         if sun_dir_image is None:
-            raise ValueError("the classical detector needs the Sun's image direction")
+            est = estimate_sun_direction(image)
+            if not est.reliable:
+                return Detections.empty()
+            sun_dir_image = est.direction
         return detect_craters(image, sun_dir_image, self.options)

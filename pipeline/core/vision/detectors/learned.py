@@ -9,8 +9,8 @@ peaks (3 x 3 local maxima above `min_confidence`), centre u = 4 (j + 0.5 + du), 
 dv) px (cell (i, j) covers pixels 4j..4j+4 in u; pixel (0, 0) the corner of the first pixel),
 radius exp(log_radius), confidence the heatmap's sigmoid; duplicates suppressed.
 
-Refinement (`refine`, when the Sun's image direction is known or estimated,
-`pipeline.core.vision.sun_direction`): the classical detector's rim-edge search and direct
+Refinement (`refine`, when the Sun's image direction is known or estimated from the shading inside
+the decoded rims, `pipeline.core.vision.sun_direction.sun_from_rims`): the classical detector's rim-edge search and direct
 least-squares ellipse fit (`classical.refine_rims`) around each decoded circle; a fit is kept when
 it agrees with the network (centre within 0.25 r, size within 20 %), else the circle stays.
 
@@ -29,7 +29,7 @@ from scipy import ndimage
 
 from pipeline.core.vision.detectors.base import Detections, suppress_duplicates
 from pipeline.core.vision.detectors.classical import refine_rims
-from pipeline.core.vision.sun_direction import estimate_sun_direction
+from pipeline.core.vision.sun_direction import sun_from_rims
 
 STRIDE = 4
 MULTIPLE = 32  # the network's input sides must be multiples of this
@@ -78,7 +78,8 @@ def decode(maps: np.ndarray, min_confidence: float, min_diameter_px: float,
     output maps (4, h, w) (module docstring), most confident first."""
     logit, log_r, du, dv = maps
     heat = 1.0 / (1.0 + np.exp(-logit.astype(np.float64)))
-    peak = (heat == ndimage.maximum_filter(heat, size=3, mode="constant")) & (heat >= min_confidence)
+    peak = ((heat == ndimage.maximum_filter(heat, size=3, mode="constant"))
+            & (heat >= min_confidence))
     i, j = np.nonzero(peak)
     radius = np.exp(log_r[i, j].astype(np.float64))
     centre = STRIDE * np.stack([j + 0.5 + du[i, j], i + 0.5 + dv[i, j]], -1).astype(np.float64)
@@ -93,7 +94,7 @@ def _tiles(size: int, tile: int, overlap: int) -> list[tuple[int, int, int, int]
     if size <= tile:
         return [(0, size, 0, size)]
     step = tile - overlap
-    starts = list(range(0, size - tile, step)) + [size - tile]
+    starts = [*range(0, size - tile, step), size - tile]
     out = []
     for k, s in enumerate(starts):
         lo = 0 if k == 0 else s + overlap // 2
@@ -136,7 +137,7 @@ class LearnedDetector:
         if o.refine and len(radius):
             sun = sun_dir_image
             if sun is None and o.estimate_sun:
-                est = estimate_sun_direction(img)
+                est = sun_from_rims(img, centre, radius)
                 sun = est.direction if est.reliable else None
             if sun is not None:
                 centre, a, b, ang = self._refine(img, centre, radius, np.asarray(sun, float))
