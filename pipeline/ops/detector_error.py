@@ -17,6 +17,9 @@ sigma(D, incidence) instead.
 
 from __future__ import annotations
 
+from itertools import pairwise
+from typing import Any
+
 import numpy as np
 import polars as pl
 
@@ -38,8 +41,8 @@ def calibrate(truth: pl.DataFrame, detections: pl.DataFrame, n_images: int) -> d
     inc = hit["incidence_deg"].to_numpy()
     err = hit["centre_error_px"].to_numpy()
     size_err = hit["diameter_error_share"].to_numpy()
-    bins = []
-    for lo, hi in zip(SIZE_EDGES_PX[:-1], SIZE_EDGES_PX[1:], strict=True):
+    bins: list[dict[str, Any]] = []
+    for lo, hi in pairwise(SIZE_EDGES_PX):
         sel = (d >= lo) & (d < hi)
         n = int(sel.sum())
         bins.append({"diam_lo_px": lo, "diam_hi_px": None if np.isinf(hi) else hi, "n": n,
@@ -58,8 +61,8 @@ def calibrate(truth: pl.DataFrame, detections: pl.DataFrame, n_images: int) -> d
         coef, *_ = np.linalg.lstsq(a, s2 * np.sqrt(w), rcond=None)
         coef = np.maximum(coef, 0.0)
         s0, k = float(np.sqrt(coef[0])), float(np.sqrt(coef[1]))
-    incidence = []
-    for lo, hi in zip(INCIDENCE_EDGES_DEG[:-1], INCIDENCE_EDGES_DEG[1:], strict=True):
+    incidence: list[dict[str, Any]] = []
+    for lo, hi in pairwise(INCIDENCE_EDGES_DEG):
         sel = (inc >= lo) & (inc < hi)
         n = int(sel.sum())
         model = np.sqrt(s0 ** 2 + (k * d[sel]) ** 2) if n and np.isfinite(s0) else None

@@ -15,10 +15,10 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from pipeline.core.sensors.scenes import SceneOptions
 from pipeline.io.workspace import workspace
 from pipeline.train import data
 from pipeline.train.fit import TrainOptions, export, facts_of, finetune, pretrain
-from pipeline.core.sensors.scenes import SceneOptions
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
 

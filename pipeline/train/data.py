@@ -24,8 +24,8 @@ import numpy as np
 from PIL import Image
 from scipy import ndimage
 
-from pipeline.core.vision.detectors.learned import STRIDE, normalise
 from pipeline.core.sensors.scenes import SceneOptions, render_scene, scene_rng
+from pipeline.core.vision.detectors.learned import STRIDE, normalise
 
 MIN_RENDERED_DIAM_PX = 6.0
 MIN_REAL_DIAM_PX = 8.0

@@ -2,8 +2,8 @@
 ONNX with a JSON of how it was trained.
 
 Two phases (fixed step counts, so the same seed gives the same weights on the same machine):
-1. synthetic: crops of rendered scenes (`pipeline.core.sensors.scenes`, domain-randomised, with degraded
-   craters), `steps_synthetic` steps;
+1. synthetic: crops of rendered scenes (`pipeline.core.sensors.scenes`, domain-randomised, with
+   degraded craters), `steps_synthetic` steps;
 2. mixed: half the batch crops of the real labelled images (all but the left-out ones), half
    rendered, `steps_real` steps, from phase 1's weights.
 Loss (CenterNet, Zhou et al. 2019): the penalty-reduced focal loss on the heatmap (alpha 2, beta
@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline.core.sensors.scenes import SceneOptions
 from pipeline.train import data
 from pipeline.train.model import CHANNELS, OUTPUTS, STRIDE, CraterNet
-from pipeline.core.sensors.scenes import SceneOptions
 
 
 @dataclass(frozen=True)

@@ -64,8 +64,9 @@ def crater_shapes(diam_m: np.ndarray, floor_fraction: float = 0.4,
     return CraterShapes(depth, rim, np.where(simple, 0.0, floor_fraction))
 
 
-def crater_profile(rho: np.ndarray, depth_m: np.ndarray, rim_height_m: np.ndarray,
-                   floor_fraction: np.ndarray, ejecta_extent: float = 2.0,
+def crater_profile(rho: np.ndarray, depth_m: np.ndarray | float,
+                   rim_height_m: np.ndarray | float, floor_fraction: np.ndarray | float,
+                   ejecta_extent: float = 2.0,
                    degradation: np.ndarray | float | None = None) -> np.ndarray:
     """Height (m) above the surroundings at normalised distance rho = r / R from the centre
     (broadcast arrays): fresh (degradation None), floor at h_r - d, wall h_r - d + d u^2 with

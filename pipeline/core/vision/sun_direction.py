@@ -14,8 +14,9 @@ Steps: the image (downsampled by block means to at most `work_px` on its long si
 (Gaussian 1 px) and high-passed (minus a Gaussian of `background_sigma_px`), in units of its
 robust sigma; dark = max(-c - 1, 0), bright = max(c - 1, 0) (c the contrast); X by FFT (zero
 padded); the direction is minus the unit-weighted sum of the antisymmetric part over the shift
-ring. `strength` = |sum| / sum |X| over the ring in [0, 1]; an estimate is `reliable` when
-strength >= `min_strength`.
+ring, and it signs the light's axis from the gradients' structure tensor (`light_axis`).
+`strength` = |sum| / sum |X| over the ring in [0, 1]; an estimate is `reliable` when strength
+>= `min_strength`.
 
 Directions are unit (du, dv) towards the Sun, u right, v down (as the detectors').
 """
@@ -45,10 +46,30 @@ def _block_mean(img: np.ndarray, k: int) -> np.ndarray:
     return img[:h, :w].reshape(h // k, k, w // k, k).mean(axis=(1, 3))
 
 
+def light_axis(image: np.ndarray) -> np.ndarray:
+    """The axis (2,) of the light in an image (sign arbitrary): the principal direction of the
+    gradients' structure tensor. Shading follows the surface slope along the Sun's azimuth, so
+    the grey-level gradients of an isotropic terrain line up with it (the illuminant-azimuth
+    estimate of Pentland 1982, "Finding the illuminant direction", JOSA 72(4)); each gradient's
+    weight is capped at the 90th percentile of the magnitudes so that a few shadow edges do not
+    decide alone."""
+    g = ndimage.gaussian_filter(np.asarray(image, dtype=np.float32), 1.0, mode="reflect")
+    gu, gv = ndimage.sobel(g, 1), ndimage.sobel(g, 0)
+    mag = np.hypot(gu, gv)
+    w = np.minimum(1.0, np.percentile(mag, 90) / np.maximum(mag, 1e-9))
+    j = np.array([[np.sum(w * gu * gu), np.sum(w * gu * gv)],
+                  [np.sum(w * gu * gv), np.sum(w * gv * gv)]])
+    return np.linalg.eigh(j)[1][:, 1]
+
+
 def estimate_sun_direction(image: np.ndarray, max_shift_px: int = 24, work_px: int = 1024,
                            background_sigma_px: float = 12.0, min_strength: float = 0.05,
                            threshold: float = 2.0) -> SunEstimate:
-    """The Sun's image direction from an image (H, W) of grey levels (module docstring)."""
+    """The Sun's image direction from an image (H, W) of grey levels: the light's axis
+    (`light_axis`), signed by the crescent cue (module docstring), whose strength it reports.
+    The axis is good to a few degrees; the sign is the weak part (fresh craters with steep
+    outer flanks can reverse it): a detector that can should check both signs, or read the sign
+    from the shading inside rims (`sun_from_rims`)."""
     img = np.asarray(image, dtype=np.float32)
     k = max(1, int(np.ceil(max(img.shape) / work_px)))
     if k > 1:
@@ -80,7 +101,8 @@ def estimate_sun_direction(image: np.ndarray, max_shift_px: int = 24, work_px: i
     norm = float(np.linalg.norm(vec))
     if total <= 0 or norm == 0:
         return SunEstimate(np.array([np.nan, np.nan]), float("nan"), 0.0, False)
-    direction = -vec / norm
+    axis = light_axis(img)
+    direction = axis if axis @ vec < 0 else -axis
     strength = norm / total
     return SunEstimate(direction, float(np.arctan2(direction[1], direction[0])), strength,
                        strength >= min_strength)

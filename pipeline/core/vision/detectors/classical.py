@@ -395,9 +395,10 @@ def detect_craters(image: np.ndarray, sun_dir_image: np.ndarray,
 
 @dataclass(frozen=True)
 class ClassicalDetector:
-    """The crescent-pairing detector behind the `Detector` interface; without the Sun's image
-    direction it estimates it from the image (`sun_direction.estimate_sun_direction`) and finds
-    nothing when the image shows no reliable cue."""
+    """The crescent-pairing detector behind the `Detector` interface. Without the Sun's image
+    direction it takes the light's axis from the image (`sun_direction.estimate_sun_direction`)
+    and runs with both signs of it, keeping the one whose detections are the more confident in
+    sum (the wrong sign pairs crescents the wrong way round and fits few rims)."""
 
     name: ClassVar[str] = "classical"
     options: DetectOptions = DetectOptions()
@@ -405,7 +406,8 @@ class ClassicalDetector:
     def detect(self, image: np.ndarray, sun_dir_image: np.ndarray | None = None) -> Detections:
         if sun_dir_image is None:
             est = estimate_sun_direction(image)
-            if not est.reliable:
+            if not np.all(np.isfinite(est.direction)):
                 return Detections.empty()
-            sun_dir_image = est.direction
+            tries = [detect_craters(image, s * est.direction, self.options) for s in (1, -1)]
+            return max(tries, key=lambda d: float(np.sum(d.confidence)))
         return detect_craters(image, sun_dir_image, self.options)

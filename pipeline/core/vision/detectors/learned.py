@@ -9,10 +9,11 @@ peaks (3 x 3 local maxima above `min_confidence`), centre u = 4 (j + 0.5 + du), 
 dv) px (cell (i, j) covers pixels 4j..4j+4 in u; pixel (0, 0) the corner of the first pixel),
 radius exp(log_radius), confidence the heatmap's sigmoid; duplicates suppressed.
 
-Refinement (`refine`, when the Sun's image direction is known or estimated from the shading inside
-the decoded rims, `pipeline.core.vision.sun_direction.sun_from_rims`): the classical detector's rim-edge search and direct
-least-squares ellipse fit (`classical.refine_rims`) around each decoded circle; a fit is kept when
-it agrees with the network (centre within 0.25 r, size within 20 %), else the circle stays.
+Refinement (`refine`, when the Sun's image direction is known or estimated from the shading
+inside the decoded rims, `pipeline.core.vision.sun_direction.sun_from_rims`): the classical
+detector's rim-edge search and direct least-squares ellipse fit (`classical.refine_rims`) around
+each decoded circle; a fit is kept when it agrees with the network (centre within 0.25 r, size
+within 20 %, residual under 0.15 r), else the circle stays.
 
 Large images are cut into overlapping tiles (`tile_px`, overlap `tile_overlap_px`); a tile keeps
 the rims whose centre lies in its own core, so each rim is decoded once.
