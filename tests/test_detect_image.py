@@ -110,6 +110,7 @@ def test_labels_print_recall_and_precision(tmp_path: Path, scene, monkeypatch, c
     assert "(given)" in out and "recall" in out and "10-20 px" in out
     c, d = di.read_labels(tmp_path / "s.txt", (256, 256))
     np.testing.assert_allclose(d, 2 * r[keep], rtol=1e-4)
+    np.testing.assert_allclose(c, scene.centre_px[keep], atol=1e-3)
 
 
 def test_unknown_detector_is_one_line(tmp_path: Path, monkeypatch, capsys) -> None:

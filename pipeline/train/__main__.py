@@ -15,6 +15,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from pipeline.core.sensors.scenes import SceneOptions
 from pipeline.io.workspace import workspace
 from pipeline.train import data
@@ -32,17 +34,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-real", action="store_true", help="rendered scenes only")
     ap.add_argument("--loo", type=Path, default=None, metavar="DIR",
                     help="write every leave-one-image-out fold into DIR instead")
+    ap.add_argument("--groups", type=int, default=None,
+                    help="with --loo: leave out groups of images (N folds of consecutive "
+                         "images in name order) instead of one image at a time")
     ap.add_argument("--tiny", action="store_true", help="a smoke run of a few seconds")
     args = ap.parse_args(argv)
     opts = TrainOptions(seed=args.seed)
     if args.tiny:
-        opts = replace(opts, scenes=6, steps_synthetic=6, steps_real=4, batch=4, crop_px=128,
+        opts = replace(opts, scenes=6, steps_synthetic=6, steps_real=4, batch=4, crop_px=128, threads=1,
                        scene=SceneOptions(size_px=128))
     folder = args.real or workspace().root.parent / "shared" / "data" / "lro_nac_craters"
     real = [] if args.no_real or not folder.is_dir() else data.real_images(folder)
     if args.tiny:
-        real = [data.random_crop(r, 256, __import__("numpy").random.default_rng(0))
-                for r in real[:2]]
+        real = [data.random_crop(r, 256, np.random.default_rng(0)) for r in real[:2]]
     if not real and not args.no_real:
         print(f"no labelled real images in {folder}: training on rendered scenes only")
     t0 = time.perf_counter()
@@ -50,15 +54,19 @@ def main(argv: list[str] | None = None) -> int:
     model, scenes = pretrain(opts, log)
     t_pre = time.perf_counter() - t0
     if args.loo is not None:
-        for k, left in enumerate(real):
+        n = len(real) if args.groups is None else max(1, min(args.groups, len(real)))
+        folds = [list(part) for part in np.array_split(np.arange(len(real)), n)]
+        for k, fold in enumerate(folds):
             t1 = time.perf_counter()
-            rest = [r for r in real if r.name != left.name]
+            left = [real[i].name for i in fold]
+            rest = [r for r in real if r.name not in left]
             fold_log = list(log)
             tuned = finetune(model, scenes, rest, opts, fold_log, tag=k + 1)
-            out = args.loo / f"crater_detector_loo_{left.name}.onnx"
-            export(tuned, out, facts_of(opts, rest, [left.name], fold_log,
-                                        t_pre + time.perf_counter() - t1))
-            print(f"wrote {out}")
+            facts = facts_of(opts, rest, left, fold_log, t_pre + time.perf_counter() - t1)
+            for name in left:  # one file per image it never saw (the same network)
+                out = args.loo / f"crater_detector_loo_{name}.onnx"
+                export(tuned, out, facts)
+                print(f"wrote {out}")
         return 0
     tuned = finetune(model, scenes, real, opts, log, tag=0)
     export(tuned, args.out, facts_of(opts, real, [], log, time.perf_counter() - t0))
