@@ -41,8 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     opts = TrainOptions(seed=args.seed)
     if args.tiny:
-        opts = replace(opts, scenes=6, steps_synthetic=6, steps_real=4, batch=4, crop_px=128, threads=1,
-                       scene=SceneOptions(size_px=128))
+        opts = replace(opts, scenes=6, steps_synthetic=6, steps_real=4, batch=4, crop_px=128,
+                       threads=1, scene=SceneOptions(size_px=128))
     folder = args.real or workspace().root.parent / "shared" / "data" / "lro_nac_craters"
     real = [] if args.no_real or not folder.is_dir() else data.real_images(folder)
     if args.tiny:
@@ -74,13 +74,13 @@ def main(argv: list[str] | None = None) -> int:
           f"{time.perf_counter() - t0:.0f} s")
     if real and not args.tiny:
         t1 = time.perf_counter()
-        left, rest = real[0], real[1:]
-        fold_log = list(log[:])
-        tuned = finetune(model, scenes, rest, opts, fold_log, tag=1)
-        out = args.out.with_name(f"crater_detector_loo_{left.name}.onnx")
-        export(tuned, out, facts_of(opts, rest, [left.name], fold_log,
+        first, others = real[0], real[1:]
+        fold_log = list(log)
+        tuned = finetune(model, scenes, others, opts, fold_log, tag=1)
+        out = args.out.with_name(f"crater_detector_loo_{first.name}.onnx")
+        export(tuned, out, facts_of(opts, others, [first.name], fold_log,
                                     t_pre + time.perf_counter() - t1))
-        print(f"wrote {out} (leaves out {left.name})")
+        print(f"wrote {out} (leaves out {first.name})")
     return 0
 
 
