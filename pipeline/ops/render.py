@@ -43,7 +43,6 @@ from pipeline.core.sensors.detection import CraterArrays, DetectionModel
 from pipeline.core.vision.detectors import Detections, Detector
 from pipeline.core.vision.detectors import classical as crater_detect
 
-DEGRADATION_TAG = 0xD17F  # the world craters' ages within the world seed
 DIAM_BINS_PX = (5.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0, np.inf)
 INCIDENCE_BINS_DEG = (0.0, 30.0, 50.0, 70.0, 80.0, 90.0)
 
@@ -131,16 +130,6 @@ def detect_options(min_diameter_px: float, blur_sigma_px: float = 0.0
     (Gaussian sigma, px; the rim-curvature correction's PSF); the rest at their defaults."""
     return crater_detect.DetectOptions(min_diameter_px=min_diameter_px,
                                        psf_sigma_px=blur_sigma_px)
-
-
-def crater_ages(n: int, age_max: float, seed: int) -> np.ndarray | None:
-    """Each catalogue row's normalised age (n,), uniform in [0, age_max], from `seed` and the
-    degradation tag alone (fixed per world crater); None when age_max is 0 (fresh craters)."""
-    if age_max <= 0:
-        return None
-    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed,
-                                                                     spawn_key=(DEGRADATION_TAG,))))
-    return age_max * rng.random(n)
 
 
 def detectability_facts(d: sensor.Detectability) -> dict[str, float | list[float]]:

@@ -22,6 +22,7 @@ import numpy as np
 import polars as pl
 
 from pipeline.config import RunConfig
+from pipeline.core.body import crater_shape
 from pipeline.core.sensors import render
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.engine.progress import progress_bar
@@ -82,7 +83,7 @@ def run(ctx: StageContext) -> StageResult:
         t_s = chosen["t_s"].to_numpy()
         sun = ephemeris.sun_mcmf_m(cfg.trajectory.epoch_utc, t_s)
         r_mcmf, dcm_body_from_mcmf = true_poses(chosen)
-        ages = ops_render.crater_ages(len(craters.crater_id), cfg.render.crater_age_max,
+        ages = crater_shape.crater_ages(len(craters.crater_id), cfg.render.crater_age_max,
                                       phys.world_seed)
         frame = chosen["frame"].to_numpy()
         with progress_bar("rendering and detecting", chosen.height) as advance:

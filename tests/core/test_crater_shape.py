@@ -76,3 +76,34 @@ def test_vectorised_per_crater_ages_and_floors() -> None:
     h32 = cs.crater_profile(rho.astype(np.float32), np.float32(100), np.float32(20), 0.0,
                             degradation=np.float32(0.02))
     assert h32.dtype == np.float32
+
+
+def test_world_ages_are_fixed_per_seed() -> None:
+    a = cs.crater_ages(1000, 0.1, 7)
+    assert a is not None and a.shape == (1000,) and 0 <= a.min() and a.max() <= 0.1
+    np.testing.assert_array_equal(a, cs.crater_ages(1000, 0.1, 7))
+    assert cs.crater_ages(1000, 0.0, 7) is None
+
+
+def test_degraded_crater_renders_shallower() -> None:
+    """One 40-cell crater seen from straight above: its floor is higher when old, the rim crest
+    (the truth the detector is scored on) lower, and fresh is unchanged by the option."""
+    from pipeline.core.math.constants import MOON_RADIUS_M
+    from pipeline.core.sensors.camera import PixelCamera
+
+    cam = PixelCamera(128, 128, 400.0, 400.0, 64.0, 64.0)
+    up = np.array([1.0, 0.0, 0.0])
+    r_cam = (MOON_RADIUS_M + 8e3) * up
+    dcm = np.stack([np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, -1.0]), -up])
+    sun = np.array([0.7, 0.7, 0.0])
+    c, d = (MOON_RADIUS_M * up)[None], np.array([800.0])
+    terrain = render.TerrainOptions(roughness_rms_slope_deg=0.0)
+    frames = [render.render_frame(cam, r_cam, dcm, sun, c, d, np.random.default_rng(0),
+                                  terrain=terrain, degradation=age)
+              for age in (None, np.array([0.0]), np.array([0.1]))]
+    floor = [float(np.nanmin(f.height_m)) for f in frames]
+    assert floor[1] == pytest.approx(floor[0], abs=1e-3 * 157)
+    assert floor[2] > floor[0] + 0.25 * 157  # the bowl (157 m deep when fresh) fills in
+    crest_fresh = render.rim_crests(c, d)[0]
+    crest_old = render.rim_crests(c, d, degradation=np.array([0.1]))[0]
+    assert np.linalg.norm(crest_old) < np.linalg.norm(crest_fresh)

@@ -40,6 +40,7 @@ MAX_DEGRADATION = 1.0  # largest tabulated normalised age kappa t / R^2 (a crate
 _N_RHO = 2049  # table samples in rho over [0, ejecta_extent]
 _N_S = 129  # table samples in sqrt(tau) over [0, sqrt(MAX_DEGRADATION)]
 _N_TERMS = 400  # Fourier-Bessel terms
+DEGRADATION_TAG = 0xD17F  # the world craters' ages within the world seed
 
 
 @dataclass(frozen=True)
@@ -118,6 +119,16 @@ def depth_share(degradation: np.ndarray | float, floor_fraction: float = 0.0,
     rho = np.stack(np.broadcast_arrays(np.zeros_like(tau), np.ones_like(tau)), -1)
     h = crater_profile(rho, 0.196, 0.036, floor_fraction, ejecta_extent, tau[..., None])
     return (h[..., 1] - h[..., 0]) / 0.196
+
+
+def crater_ages(n: int, age_max: float, seed: int) -> np.ndarray | None:
+    """Each catalogue row's normalised age (n,), uniform in [0, age_max], from `seed` and the
+    degradation tag alone (fixed per world crater); None when age_max is 0 (fresh craters)."""
+    if age_max <= 0:
+        return None
+    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed,
+                                                                     spawn_key=(DEGRADATION_TAG,))))
+    return age_max * rng.random(n)
 
 
 # --- diffusion tables -----------------------------------------------------------------------------
