@@ -70,15 +70,27 @@ sql *args:
 view run="default" *args:
     {{py}} view "$@"
 
+# craters in your own images: just detect-image IMAGE... --out DIR [--sun-azimuth-deg A] [--detector classical|learned] [--labels FILE]
+detect-image *args:
+    {{py}} detect-image "$@"
+
+# train the learned crater detector (needs the `train` extra: pip install -e ".[train]"); --loo DIR for the leave-one-image-out folds
+train-detector *args:
+    python -m pipeline.train "$@"
+
 # the test suite (uses both cores: one pytest worker each, single-threaded BLAS so they do not
 # fight), but the tests marked slow (long end-to-end and real-catalogue checks: `just test-slow`,
 # both run in CI)
 test *args:
-    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 python -m pytest -n 2 --dist loadscope -m "not slow" "$@"
+    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 python -m pytest -n 2 --dist loadscope -m "not slow and not targets" "$@"
 
 # the tests marked slow
 test-slow *args:
-    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 python -m pytest -n 2 --dist loadscope -m slow "$@"
+    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 python -m pytest -n 2 --dist loadscope -m "slow and not targets" "$@"
+
+# the learned detector's accuracy targets (rendered and real; they fail until a model meets them)
+test-targets *args:
+    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 python -m pytest -n 2 --dist loadscope -m targets "$@"
 
 # benchmarks: figures printed and saved to runs/bench/
 bench *args:

@@ -6,7 +6,9 @@ time at 10, 100, 900 craters), navigate, physical, pnp (against OpenCV's solvePn
 (tracking and lost in space on the `identify` scenario), render (images and detection from
 pixels on the `images` scenario), run (cold and warm `run` as a user starts it), sweep, campaign
 (dispersed full-descent runs: in-process, on Ray with 1 and 2 workers), campaign100 (the shipped
-100-run `dispersed` campaign). Stage-level groups work in a scratch copy of the project folder, so
+100-run `dispersed` campaign), detector (the learned and classical crater detectors on held-back
+rendered scenes, the `images-learned` scenario and held-out real images: `pipeline.bench_detector`).
+Stage-level groups work in a scratch copy of the project folder, so
 the user's catalogue and runs are untouched.
 """
 
@@ -28,6 +30,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from pipeline.bench_detector import bench_detector
 from pipeline.config import load_config
 from pipeline.core.math import frames, tiling
 from pipeline.core.math.constants import MOON_RADIUS_M
@@ -515,6 +518,7 @@ GROUPS: dict[str, Callable[[Scratch], list[Result]]] = {
     "estimators": bench_estimators, "navigate": bench_navigate, "physical": bench_physical,
     "pnp": bench_pnp, "identify": bench_identify, "render": bench_render, "run": bench_run,
     "sweep": bench_sweep, "campaign": bench_campaign, "campaign100": bench_campaign100,
+    "detector": bench_detector,
 }
 
 

@@ -309,6 +309,38 @@ def view(
     typer.echo(" ".join(args))
     os.execv(args[0], args)
 
+@app.command("detect-image")
+def detect_image(
+    images: Annotated[list[Path], typer.Argument(help="PNG, JPEG or TIFF images.")],
+    out: Annotated[Path, typer.Option("--out", help="Folder for detections.parquet and the "
+                                                     "overlays.")],
+    sun_azimuth_deg: Annotated[float | None, typer.Option(
+        help="The Sun's azimuth in the image (deg from +u, right, towards +v, down); default: "
+             "estimated from the image.")] = None,
+    detector: Annotated[str, typer.Option(help="classical or learned.")] = "learned",
+    labels: Annotated[Path | None, typer.Option(
+        help="Crater labels: a CSV (ID,X,Y,W,H,C_X,CY) or YOLO text (class xc yc w h), or a "
+             "folder of <image stem>.txt/.csv; prints recall and precision by size.")] = None,
+    min_diameter_px: Annotated[float, typer.Option(help="Smallest rim kept (px).")] = 10.0,
+    model: Annotated[Path | None, typer.Option(help="The learned detector's ONNX file.")] = None,
+) -> None:
+    """Craters in any image: rim ellipses with a confidence (detections.parquet: image,
+    centre_u_px, centre_v_px, semi_major_px, semi_minor_px, angle_rad, confidence; pixel (0, 0)
+    the corner of the first pixel, u right, v down) and an overlay PNG per image."""
+    from pipeline.ops import detect_image as di
+    from pipeline.ops.detectors import make_detector
+
+    try:
+        det = make_detector(detector, min_diameter_px=min_diameter_px, model=model)
+    except (ValueError, FileNotFoundError) as exc:
+        raise PipelineError(f"--detector {detector}: {exc}") from None
+    lines, failed = di.run(list(images), det, out, sun_azimuth_deg, labels)
+    for line in lines:
+        typer.echo(line, err=line.startswith("error:"))
+    if failed:
+        raise SystemExit(1)
+
+
 @app.command()
 def stages() -> None:
     """The stages as declared: what each reads (config, artifacts), writes and is keyed on."""

@@ -24,7 +24,8 @@ from pipeline.io.store import RunStore
 from pipeline.workspace import workspace
 
 COMMANDS = {"run", "ingest", "trajectory", "imu", "render", "detect", "estimate", "navigate",
-            "score", "sweep", "campaign", "compare", "sql", "view", "stages", "bench"}
+            "score", "sweep", "campaign", "compare", "sql", "view", "stages", "bench",
+            "detect-image"}
 RECORDINGS = ["detect/detection.rrd", "estimate/estimation.rrd", "imu/imu.rrd",
               "navigate/navigation.rrd", "score/scoring.rrd", "trajectory/trajectory.rrd"]
 # Six frames (1,900-1,950 s) over a 10 km synthetic catalogue: ~20 craters used per frame.

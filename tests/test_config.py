@@ -667,3 +667,18 @@ def test_a_navigator_that_assumes_another_camera_mounting(workdir):
                    'assumed_camera_mounting_deg = [0.0, 0.0]\n')
     with pytest.raises(ConfigError, match=r"assumed_camera_mounting_deg"):
         load_config("mis_bad")
+
+
+def test_render_detector_and_crater_ages_are_checked(workdir):
+    """render.detector names a known detector, terrain.crater_age_max is a normalised age in
+    [0, 1]; one line naming the key; images-learned picks the learned one."""
+    path = write_scenario("det", 'extends = "images"\n[render]\ndetector = "yolo"\n')
+    with pytest.raises(ConfigError, match=r"render\.detector = 'yolo': must be one of") as exc:
+        load_config("det")
+    assert str(path) in str(exc.value) and "\n" not in str(exc.value)
+    write_scenario("age", 'extends = "images"\n[terrain]\ncrater_age_max = 2.0\n')
+    with pytest.raises(ConfigError, match=r"terrain\.crater_age_max"):
+        load_config("age")
+    assert load_config("images-learned").render.detector == "learned"
+    assert load_config("images").render.detector == "classical"
+    assert load_config("images").terrain.crater_age_max == 0.0

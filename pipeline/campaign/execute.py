@@ -19,7 +19,8 @@ run folder, its recordings and report figures off unless `spec.recordings` (`CRA
 `pipeline.io.rrd`).
 The catalogue database is built once before the runs (every run shares it, read-only) and loaded
 once: its arrays go to Ray's object store (in this process: handed over directly), and each run's
-stages take them from there (`catalogue_db.share_catalogue`) instead of reading the database.
+stages take them from there (`pipeline.io.catalogue.share_catalogue`) instead of reading the
+database.
 A run whose drawn config fails validation is recorded with status
 `invalid_config` and never started; one that raises is recorded `failed` with its error (one line;
 the traceback in its log); a Ray task lost to a dead worker `crashed`. The campaign completes.

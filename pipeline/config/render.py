@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 from pipeline.config.checks import PROPAGATION_LIMIT_S, _check, _num
 
+RENDER_DETECTORS = ("classical", "learned")
+
 
 @dataclass(frozen=True)
 class RenderConfig:
@@ -23,6 +25,7 @@ class RenderConfig:
     bits: int
     blur_sigma_px: float
     recording_size_px: int  # side of the recording's images (JPEG)
+    detector: str  # classical | learned (`pipeline.ops.detectors`)
 
     def __post_init__(self) -> None:
         k = "render."
@@ -43,6 +46,8 @@ class RenderConfig:
         _num(self.bits, k + "bits", 8, 16)
         _num(self.blur_sigma_px, k + "blur_sigma_px", 0.0, 10.0, unit="px")
         _num(self.recording_size_px, k + "recording_size_px", 64, 4096, unit="px")
+        _check(self.detector in RENDER_DETECTORS, k + "detector",
+               f"= {self.detector!r}: must be one of {RENDER_DETECTORS}")
 
     @property
     def enabled(self) -> bool:

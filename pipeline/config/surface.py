@@ -29,7 +29,8 @@ class TerrainConfig:
     base_fwhm_km: float  # the base's low-pass (km)
     roughness_rms_slope_deg: float  # RMS slope at the baseline
     roughness_baseline_m: float
-    cache_mib: float  # the tiles' memory bound (MiB) per surface
+    cache_mib: float  # the tiles' memory bound (MiB)
+    crater_age_max: float  # the world's craters degraded: normalised ages in [0, max] (render too)
 
     def __post_init__(self) -> None:
         k = "terrain."
@@ -42,7 +43,9 @@ class TerrainConfig:
         _num(self.roughness_rms_slope_deg, k + "roughness_rms_slope_deg", 0.0, 30.0, unit="deg")
         _num(self.roughness_baseline_m, k + "roughness_baseline_m", 0.1, 10_000.0, unit="m")
         _num(self.cache_mib, k + "cache_mib", 8.0, 16_384.0, unit="MiB",
-             why="the machine's memory, per surface")
+             why="the machine's memory")
+        _num(self.crater_age_max, k + "crater_age_max", 0.0, 1.0,
+             why="the normalised age kappa t / R^2 (0.1 leaves a bowl a third as deep)")
 
 
 @dataclass(frozen=True)

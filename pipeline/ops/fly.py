@@ -20,6 +20,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from pipeline.core.body.crater_shape import crater_ages
 from pipeline.core.body.surface import Sphere, Surface
 from pipeline.core.dynamics.attitude import thrust_attitude
 from pipeline.core.dynamics.powered import LanderState, Vehicle
@@ -166,7 +167,9 @@ def scene(o: FlyOptions, craters: CraterArrays, orbit: DescentOrbit) -> Scene:
                                          phys.world_seed)
     else:
         truth = rim_sensor.World(craters.r_mcmf_m, craters.diam_km * 1e3)
-    surfaces = build_surfaces(o.surfaces, truth.r_mcmf_m, truth.diam_m)
+    ages = crater_ages(len(craters.crater_id), o.surfaces.crater_age_max,
+                       phys.world_seed if phys is not None else 0)
+    surfaces = build_surfaces(o.surfaces, truth.r_mcmf_m, truth.diam_m, ages)
     if isinstance(surfaces.world, Sphere) and isinstance(surfaces.map, Sphere):
         rows = np.empty(0, np.int64)
     else:
@@ -176,11 +179,11 @@ def scene(o: FlyOptions, craters: CraterArrays, orbit: DescentOrbit) -> Scene:
         focal, min_px = ((phys.camera.fx_px, phys.detectability.min_diameter_px) if phys
                          else (float(o.model.k[0, 0]), 1.0))
         rows = corridor_craters(truth.r_mcmf_m, truth.diam_m, path, focal, min_px)
-    world = rim_sensor.World(on_surface(truth.r_mcmf_m, truth.diam_m, rows, surfaces.world),
-                             truth.diam_m)
+    world = rim_sensor.World(on_surface(truth.r_mcmf_m, truth.diam_m, rows, surfaces.world,
+                                        ages), truth.diam_m)
     believed = Craters(craters.crater_id, craters.diam_km,
-                       on_surface(craters.r_mcmf_m, craters.diam_km * 1e3, rows, surfaces.map),
-                       craters.index)
+                       on_surface(craters.r_mcmf_m, craters.diam_km * 1e3, rows, surfaces.map,
+                                  ages), craters.index)
     return Scene(surfaces, world, believed, rows)
 
 

@@ -40,7 +40,7 @@ from pipeline.core.math import tiling
 from pipeline.core.sensors import camera, conics, render
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.core.sensors.detection import CraterArrays, DetectionModel
-from pipeline.core.vision.detectors import Detections
+from pipeline.core.vision.detectors import Detections, Detector
 from pipeline.core.vision.detectors import classical as crater_detect
 
 DIAM_BINS_PX = (5.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0, np.inf)
@@ -49,13 +49,15 @@ INCIDENCE_BINS_DEG = (0.0, 30.0, 50.0, 70.0, 80.0, 90.0)
 
 @dataclass(frozen=True)
 class RenderOptions:
-    """Rendering, detection and scoring options: the match gates (shares of the true apparent
-    diameter, relative semi-major difference), the smallest true rim counted (px), and the share
-    by which the coverage cap is widened before the crater-size and shadow margins."""
+    """Rendering, detection and scoring options: the detector (`pipeline.ops.detectors`; default
+    the classical one with `detect`), the match gates (shares of the true apparent diameter,
+    relative semi-major difference), the smallest true rim counted (px), and the share by which
+    the coverage cap is widened before the crater-size and shadow margins."""
 
     terrain: render.TerrainOptions = field(default_factory=render.TerrainOptions)
     sensor: render.SensorOptions = field(default_factory=render.SensorOptions)
     detect: crater_detect.DetectOptions = field(default_factory=crater_detect.DetectOptions)
+    detector: Detector | None = None  # None: the classical detector with `detect`
     match_centre_share: float = 0.25
     match_size_share: float = 0.2
     min_truth_px: float = 5.0
@@ -203,12 +205,14 @@ def scene_rows(model: DetectionModel, craters: CraterArrays, world: sensor.World
 def render_and_detect(model: DetectionModel, craters: CraterArrays, world: sensor.World,
                       r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
                       sun_mcmf_m: np.ndarray, rng: np.random.Generator,
-                      opts: RenderOptions | None = None) -> FrameImage:
+                      opts: RenderOptions | None = None, degradation: np.ndarray | None = None
+                      ) -> FrameImage:
     """Render, detect and match one frame: spacecraft at r_mcmf_m (3,) (m, MCMF) with attitude
     dcm_body_from_mcmf (3, 3), the Sun at sun_mcmf_m (3,) (m, Moon-centred MCMF), the world's
     craters (`sensor.world_craters`, rows as the catalogue); the model's physical camera and
     detectability. `rng` draws the roughness and the sensor noise. No detections (empty) when
-    the image centre misses the Moon (no Sun direction in the image)."""
+    the image centre misses the Moon (no Sun direction in the image). `degradation`: the world
+    craters' normalised ages (catalogue rows; None: all fresh)."""
     opts = opts or RenderOptions()
     phys = model.physical
     if phys is None:
@@ -224,20 +228,23 @@ def render_and_detect(model: DetectionModel, craters: CraterArrays, world: senso
     u_sun = (sun - ground) / np.linalg.norm(sun - ground)
     rows = scene_rows(model, craters, world, r, dcm_body_from_mcmf, u_sun, opts)
     c, d = world.r_mcmf_m[rows], world.diam_m[rows]
+    age = None if degradation is None else degradation[rows]
 
     t0 = time.perf_counter()
     frame = render.render_frame(cam, r, dcm_cam, u_sun, c, d, rng, radius,
-                                terrain=opts.terrain, sensor=opts.sensor)
+                                terrain=opts.terrain, sensor=opts.sensor, degradation=age)
     t1 = time.perf_counter()
     sun_img = crater_detect.sun_direction_image(cam, r, dcm_cam, u_sun, radius_m=radius)
-    if np.all(np.isfinite(sun_img)):
+    if not np.all(np.isfinite(sun_img)):
+        det = Detections.empty()
+    elif opts.detector is None:
         det = crater_detect.detect_craters(frame.image, sun_img, opts.detect)
     else:
-        det = Detections.empty()
+        det = opts.detector.detect(frame.image, sun_img)
     t2 = time.perf_counter()
 
     # truth: the rendered rim crests overlapping the image; counted: wholly inside, big enough
-    crest, rim_r = render.rim_crests(c, d, radius, opts.terrain)
+    crest, rim_r = render.rim_crests(c, d, radius, opts.terrain, age)
     ell = conics.ellipse_from_conic(conics.rim_conics(crest, rim_r, r, dcm_cam, cam.k))
     cos, sin = np.cos(ell.angle_rad), np.sin(ell.angle_rad)
     a, b = ell.semi_major_px, ell.semi_minor_px

@@ -33,11 +33,13 @@ CORRIDOR_MARGIN_M = 10e3  # the flight's departure from the nominal path, and it
 
 @dataclass(frozen=True)
 class SurfaceOptions:
-    """The world's surface (None: the sphere) and its base grid (base "grid"), and the map:
-    its kind (truth | sphere | terrain) and errors (kind terrain)."""
+    """The world's surface (None: the sphere), its base grid (base "grid") and its craters'
+    largest normalised age (0: fresh), and the map: its kind (truth | sphere | terrain) and
+    errors (kind terrain)."""
 
     terrain: TerrainOptions | None
     base_grid: LatLonGrid | None
+    crater_age_max: float
     map_kind: str
     map_errors: MapErrorOptions
 
@@ -49,13 +51,13 @@ class Surfaces:
 
 
 def build_surfaces(o: SurfaceOptions, world_c_mcmf_m: np.ndarray, world_diam_m: np.ndarray,
-                   depth_scale: np.ndarray | None = None) -> Surfaces:
+                   degradation: np.ndarray | None = None) -> Surfaces:
     """The world's surface (of the world's craters: centres (N, 3) m, diameters (N,) m, depth
     scales (N,)) and the navigator's map (module docstring)."""
     if o.terrain is None:
         world: Surface = Sphere()
     else:
-        world = Terrain.build(o.terrain, world_c_mcmf_m, world_diam_m, depth_scale, o.base_grid)
+        world = Terrain.build(o.terrain, world_c_mcmf_m, world_diam_m, degradation, o.base_grid)
     if o.map_kind == "truth":
         return Surfaces(world, world)
     if o.map_kind == "sphere" or not isinstance(world, Terrain):
@@ -93,12 +95,12 @@ def corridor_craters(c_mcmf_m: np.ndarray, diam_m: np.ndarray, path_mcmf_m: np.n
 
 
 def on_surface(c_mcmf_m: np.ndarray, diam_m: np.ndarray, rows: np.ndarray, surface: Surface,
-               depth_scale: np.ndarray | None = None) -> np.ndarray:
+               degradation: np.ndarray | None = None) -> np.ndarray:
     """The centres (N, 3) with those of `rows` raised to their rim crests on `surface` (a copy;
     the array itself on the sphere)."""
     if isinstance(surface, Sphere) or not rows.size:
         return c_mcmf_m
     out = np.array(c_mcmf_m, dtype=float, copy=True)
     out[rows] = rim_crests(out[rows], np.asarray(diam_m)[rows], surface,
-                           None if depth_scale is None else depth_scale[rows])
+                           None if degradation is None else degradation[rows])
     return out

@@ -65,7 +65,7 @@ def surface_options(cfg: RunConfig) -> SurfaceOptions:
                              bias_m=m.bias_m, shift_sigma_m=m.shift_sigma_m,
                              bias_sigma_m=m.bias_sigma_m, seed=m.seed,
                              resolution_m=m.resolution_m)
-    return SurfaceOptions(terrain, grid, m.kind, errors)
+    return SurfaceOptions(terrain, grid, t.crater_age_max, m.kind, errors)
 
 
 def options(cfg: RunConfig) -> FlyOptions:

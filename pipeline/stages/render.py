@@ -10,7 +10,8 @@ only
 craters.parquet (one row per true rim in view), images.parquet (per image), detection_recall.
 parquet (recall by apparent size and incidence beside the detection model's prediction),
 render.json (the headline numbers and the detection model calibrated on the pixels),
-camera_images.parquet (the images, lossless PNG per frame); its visuals contact_sheet.png and
+camera_images.parquet (the images, lossless PNG per frame), detector_error.json (the detector's
+centre and size errors and false rate, `ops.detector_error`); its visuals contact_sheet.png and
 render.rrd (the images, JPEG, with the true and detected rims).
 """
 
@@ -21,6 +22,7 @@ import json
 import polars as pl
 
 from pipeline.config import RunConfig
+from pipeline.core.body import crater_shape
 from pipeline.core.math.streams import stream
 from pipeline.core.sensors import render
 from pipeline.core.sensors import rim_sensor as sensor
@@ -29,16 +31,21 @@ from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.io import ephemeris
 from pipeline.io.catalogue import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.io.images import encode_png
+from pipeline.ops import detector_error
 from pipeline.ops import render as ops_render
 from pipeline.ops.detect import model_of, true_poses
+from pipeline.ops.detectors import make_detector
 from pipeline.viz.draw.render import record_render
 
 
 def options(cfg: RunConfig) -> ops_render.RenderOptions:
     """What the renderer and the detector do (config `render`, the detector's minimum size from
-    `detection.detect_min_diameter_px`)."""
+    `detection.detect_min_diameter_px`; `render.detector` chooses it)."""
     r = cfg.render
-    return ops_render.RenderOptions(
+    detector = None if r.detector == "classical" else make_detector(
+        r.detector, min_diameter_px=cfg.detection.detect_min_diameter_px,
+        blur_sigma_px=r.blur_sigma_px)
+    return ops_render.RenderOptions(detector=detector,
         terrain=render.TerrainOptions(albedo=r.albedo,
                                       roughness_rms_slope_deg=r.roughness_rms_slope_deg),
         sensor=render.SensorOptions(read_noise_e=r.read_noise_e, full_well_e=r.full_well_e,
@@ -72,12 +79,14 @@ def run(ctx: StageContext) -> StageResult:
         t_s = chosen["t_s"].to_numpy()
         sun = ephemeris.sun_mcmf_m(cfg.trajectory.epoch_utc, t_s)
         r_mcmf, dcm_body_from_mcmf = true_poses(chosen)
+        ages = crater_shape.crater_ages(len(craters.crater_id), cfg.terrain.crater_age_max,
+                                        phys.world_seed)
         frame = chosen["frame"].to_numpy()
         with progress_bar("rendering and detecting", chosen.height) as advance:
             for i in range(chosen.height):
                 rng = stream(cfg.seed, "render", int(frame[i]))
                 img = ops_render.render_and_detect(model, craters, world, r_mcmf[i],
-                                                   dcm_body_from_mcmf[i], sun[i], rng, opts)
+                                                   dcm_body_from_mcmf[i], sun[i], rng, opts, ages)
                 results.append((int(frame[i]), float(t_s[i]), img))
                 pngs.append(encode_png(img.image))
                 advance()
@@ -100,6 +109,9 @@ def run(ctx: StageContext) -> StageResult:
          "bits": [cfg.render.bits] * len(results), "png": pngs},
         schema={"frame": pl.Int32, "t_s": pl.Float64, "bits": pl.Int32, "png": pl.Binary}))
     tx.output("render.json").write_text(json.dumps(facts, indent=2) + "\n")
+    error_model = {"detector": cfg.render.detector,
+                   **detector_error.calibrate(truth, detections, len(results))}
+    tx.output("detector_error.json").write_text(json.dumps(error_model, indent=2) + "\n")
     folder = ctx.store.stage_dir("render")
     if not results:
         line = "no frame rendered (render.start_s, end_s)"
@@ -126,10 +138,12 @@ STAGE = Stage(
         "camera_mounting_deg", "detect_min_diameter_px", "catalogue_sigma_horizontal_m",
         "catalogue_sigma_height_m", "catalogue_sigma_diameter_share", "site_map_sigma_horizontal_m",
         "site_map_sigma_height_m", "site_map_relative_sigma_m", "world_seed")),
+           "terrain.crater_age_max",
            "trajectory.epoch_utc", "seed"),
     inputs=("catalogue.json", "trajectory.parquet"),
     outputs=("pixel_detections.parquet", "rendered_craters.parquet", "images.parquet",
-             "detection_recall.parquet", "camera_images.parquet", "render.json"),
+             "detection_recall.parquet", "camera_images.parquet", "render.json",
+             "detector_error.json"),
     code=("pipeline.stages.render",),
     run=run,
     visuals=("contact_sheet.png", "render.rrd"),

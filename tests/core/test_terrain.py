@@ -29,7 +29,7 @@ def _analytic_height(p: np.ndarray, diam_m: float) -> np.ndarray:
     """The profile of one crater at (lat 0, lon 0) at points p (N, 3): the independent
     reference (arc distance from the centre over the crater radius)."""
     ang = np.arccos(np.clip(p[..., 0] / np.linalg.norm(p, axis=-1), -1, 1))
-    return crater_relief_m(ang * R / (diam_m / 2), np.full(ang.shape, diam_m), 1.0, 0.4, 2.0)
+    return crater_relief_m(ang * R / (diam_m / 2), np.full(ang.shape, diam_m), None, 0.4, 2.0)
 
 
 def _first_hit(o: np.ndarray, d: np.ndarray, diam_m: float, t_max: float) -> float:

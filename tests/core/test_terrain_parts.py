@@ -151,7 +151,7 @@ def test_rim_crests_include_the_neighbours_profiles():
     phi = np.linspace(0, 2 * np.pi, 64, endpoint=False)
     pts = _unit(np.stack([np.full(64, R), 13e3 + 500 * np.cos(phi), 500 * np.sin(phi)], -1))
     ang = np.arccos(np.clip(pts[:, 0], -1, 1))
-    ejecta = crater_relief_m(ang * R / (big / 2), np.full(64, big), 1.0, 0.4, 2.0).mean()
+    ejecta = crater_relief_m(ang * R / (big / 2), np.full(64, big), None, 0.4, 2.0).mean()
     assert crest[1] == pytest.approx(rim[1] + ejecta, abs=0.01)
     assert ejecta > 50.0
 

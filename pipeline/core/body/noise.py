@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from pipeline.core.math.streams import stream
+
 _GRAD = np.array([[1, 1, 0], [-1, 1, 0], [1, -1, 0], [-1, -1, 0], [1, 0, 1], [-1, 0, 1],
                   [1, 0, -1], [-1, 0, -1], [0, 1, 1], [0, -1, 1], [0, 1, -1], [0, -1, -1],
                   [1, 1, 0], [0, -1, 1], [-1, 1, 0], [0, -1, -1]], dtype=float)
@@ -94,7 +96,7 @@ class FractalNoise:
         on the sphere of radius_m: RMS of (h(p + L e) - h(p)) / L = tan(rms_slope_deg)."""
         n_oct = max(int(np.floor(np.log2(outer_m / min_wavelength_m))) + 1, 1)
         lam = outer_m / 2.0 ** np.arange(n_oct)
-        rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0x7E4,)))
+        rng = stream(seed, "terrain_roughness")
         rot = Rotation.random(n_oct, random_state=rng).as_matrix()
         noise = cls(lam, (lam / outer_m) ** hurst, rot, rng.uniform(0, 1024, (n_oct, 3)),
                     rng.integers(0, 2**63, n_oct, dtype=np.uint64))

@@ -42,7 +42,7 @@ def in_reach(c_mcmf_m: np.ndarray, diam_m: np.ndarray, path_mcmf_m: np.ndarray,
 
 
 def rim_crests(c_mcmf_m: np.ndarray, diam_m: np.ndarray, surface: Surface,
-               depth_scale: np.ndarray | None = None) -> np.ndarray:
+               degradation: np.ndarray | None = None) -> np.ndarray:
     """Crater centres (N, 3) (m, given on or about the reference sphere) raised along their
     verticals by their rim crests' heights on `surface` (`Surface.rim_crest_heights_m`, module
     docstring). The sphere leaves them unchanged."""
@@ -50,4 +50,4 @@ def rim_crests(c_mcmf_m: np.ndarray, diam_m: np.ndarray, surface: Surface,
     if isinstance(surface, Sphere) or not len(c):
         return c
     up = c / np.linalg.norm(c, axis=-1, keepdims=True)
-    return c + surface.rim_crest_heights_m(c, diam_m, depth_scale)[:, None] * up
+    return c + surface.rim_crest_heights_m(c, diam_m, degradation)[:, None] * up

@@ -71,10 +71,10 @@ class Surface(Protocol):
         ...
 
     def rim_crest_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
-                            depth_scale: np.ndarray | None = None) -> np.ndarray:
+                            degradation: np.ndarray | None = None) -> np.ndarray:
         """Height (m) above the reference sphere of the rim crests of craters centred at
-        c_mcmf_m (N, 3) (their directions) of diameters diam_m (N,) (m) and depth scales (N,)
-        (1, None: fresh; `pipeline.core.body.relief`)."""
+        c_mcmf_m (N, 3) (their directions) of diameters diam_m (N,) (m) and normalised ages (N,)
+        (None: fresh; `pipeline.core.body.relief`)."""
         ...
 
 
@@ -118,7 +118,7 @@ class Sphere:
         return np.linalg.norm(np.asarray(r_mcmf_m, dtype=float), axis=-1) - self.reference_radius_m
 
     def rim_crest_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
-                            depth_scale: np.ndarray | None = None) -> np.ndarray:
+                            degradation: np.ndarray | None = None) -> np.ndarray:
         return np.zeros(np.shape(c_mcmf_m)[:-1])
 
 

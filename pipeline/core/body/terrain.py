@@ -8,10 +8,10 @@ Height over the reference sphere (m) at a unit direction u, at a ground resoluti
   the LOLA spectrum; `terrain_fields`);
 - craters: the catalogue's craters with the renderer's profiles (Pike, R. J. 1977, "Size-
   dependence in the shape of fresh impact craters on the Moon"; ejecta after McGetchin et al.
-  1973), scaled per crater by `depth_scale` (degradation: shallower with age, cf. Fassett, C. I. &
-  Thomson, B. J. 2014, "Crater degradation on the lunar maria: topographic diffusion and the rate
-  of erosion on the Moon", JGR Planets 119, 2255), those at least `min_crater_cells` samples
-  across;
+  1973; `pipeline.core.body.crater_shape`), each diffused by its normalised age (`degradation`:
+  Fassett, C. I. & Thomson, B. J. 2014, "Crater degradation on the lunar maria: topographic
+  diffusion and the rate of erosion on the Moon", JGR Planets 119, 2255), those at least
+  `min_crater_cells` samples across;
 - roughness: seeded band-limited fBm calibrated to an RMS slope at a baseline (Rosenburg et al.
   2011; `noise`), the octaves of at least `roughness_min_cells` samples.
 Every term is a function of position: the terrain is the same whatever the query order, and
@@ -45,13 +45,14 @@ from pipeline.core.body.terrain_fields import (
     BaseField,
     CraterField,
     LatLonGrid,
-    crater_depth_rim_m,
+    crater_relief_m,
     lowpass_grid,
     node_blocks,
     synthetic_base_grid,
 )
 from pipeline.core.body.terrain_rays import march
 from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.math.streams import stream
 from pipeline.core.sensors.conics import tangent_basis
 
 BASES = ("synthetic", "grid", "none")
@@ -240,14 +241,14 @@ class Terrain:
 
     @classmethod
     def build(cls, opts: TerrainOptions, c_mcmf_m: np.ndarray | None = None,
-              diam_m: np.ndarray | None = None, depth_scale: np.ndarray | None = None,
+              diam_m: np.ndarray | None = None, degradation: np.ndarray | None = None,
               base_grid: LatLonGrid | None = None) -> Terrain:
         """The truth terrain of catalogue craters (centres (N, 3) m MCMF, their direction is
-        used; diameters (N,) m; depth scales (N,), 1 = fresh) on the options' base (`base_grid`
+        used; diameters (N,) m; normalised ages (N,), None: fresh) on the options' base (`base_grid`
         when base = "grid", e.g. `pipeline.io.lunar_dem.load_lola_dem()`)."""
         c = np.empty((0, 3)) if c_mcmf_m is None else _rows(c_mcmf_m)
         d = np.empty(0) if diam_m is None else np.asarray(diam_m, dtype=float).reshape(-1)
-        craters = CraterField(c, d, depth_scale, opts.floor_fraction, opts.ejecta_extent,
+        craters = CraterField(c, d, degradation, opts.floor_fraction, opts.ejecta_extent,
                               opts.radius_m)
         fwhm = opts.base_fwhm_km * 1e3
         if opts.base == "grid":
@@ -267,7 +268,7 @@ class Terrain:
     def navigator_map(self, errors: MapErrorOptions) -> Terrain:
         """The navigator's map of this terrain (module docstring). It reads the truth's tiles
         (in the truth's frame, at its own resolutions): one cache serves both."""
-        rng = np.random.default_rng(np.random.SeedSequence(errors.seed, spawn_key=(0x3A9,)))
+        rng = stream(errors.seed, "map")
         draw = rng.standard_normal(3)
         east = errors.shift_east_m + errors.shift_sigma_m * draw[0]
         north = errors.shift_north_m + errors.shift_sigma_m * draw[1]
@@ -367,9 +368,9 @@ class Terrain:
         return (rn - self.reference_radius_m - h).reshape(np.shape(r_mcmf_m)[:-1])
 
     def rim_crest_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
-                            depth_scale: np.ndarray | None = None) -> np.ndarray:
+                            degradation: np.ndarray | None = None) -> np.ndarray:
         """Rim crest heights (m) of craters (centres (N, 3), their directions; diameters (N,)
-        m; depth scales (N,), None: fresh): the profile's rim over the surroundings, the
+        m; normalised ages (N,), None: fresh): the profile's rim over the surroundings, the
         terrain read at `SURROUNDINGS_PER_DIAMETER` diameters (too coarse to hold the crater
         itself; `pipeline.core.body.relief`). Cheap: tiles at the crater's scale; within the
         rim's own scatter of `rim_circle_heights_m`."""
@@ -377,7 +378,7 @@ class Terrain:
         u = _rows(c_mcmf_m)
         around = self.height_m(u / np.linalg.norm(u, axis=1, keepdims=True),
                                SURROUNDINGS_PER_DIAMETER * d)
-        return around + self.rim_height_m(d, 1.0 if depth_scale is None else depth_scale)
+        return around + self.rim_height_m(d, degradation)
 
     def rim_circle_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
                              n_points: int = 32) -> np.ndarray:
@@ -397,12 +398,13 @@ class Terrain:
         order = self._order(d / 500.0, d.size)
         return self._gen.heights_at(pts, order).mean(axis=1) + self.bias_m
 
-    def rim_height_m(self, diam_m: np.ndarray, depth_scale: np.ndarray | float = 1.0
+    def rim_height_m(self, diam_m: np.ndarray, degradation: np.ndarray | float | None = None
                      ) -> np.ndarray:
-        """The profile's rim height (m) above the surroundings (no base, no neighbours)."""
+        """The profile's height (m) at the rim (rho = 1) above the surroundings, fresh or at
+        the normalised ages `degradation` (no base, no neighbours)."""
         d = np.asarray(diam_m, float)
-        return crater_depth_rim_m(d, np.broadcast_to(np.asarray(depth_scale, float), d.shape),
-                                  self.opts.floor_fraction)[1]
+        return crater_relief_m(np.ones(d.shape), d, degradation, self.opts.floor_fraction,
+                               self.opts.ejecta_extent)
 
     @property
     def max_height_m(self) -> float:

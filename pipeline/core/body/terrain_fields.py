@@ -12,8 +12,9 @@ the row before it, half a turn away) and around in longitude. Two sources:
   craters are stamped on top. LOLA: Smith, D. E. et al. (2010), "Initial observations from the
   Lunar Orbiter Laser Altimeter (LOLA)", GRL 37, L18204.
 
-Craters: each catalogue crater's profile (Pike 1977 fresh-crater morphometry and the ejecta
-taper, through `crater_relief_m`, the one adapter to the profile functions) over its footprint
+Craters: each catalogue crater's profile (`pipeline.core.body.crater_shape`: Pike 1977 fresh
+morphometry and the ejecta taper, diffused by the crater's age; through `crater_relief_m`, the
+one adapter to the profile functions) over its footprint
 (ejecta_extent radii), at horizontal distance = great-circle arc from the centre, summed. Craters
 are indexed by size class (diameter octaves, a k-d tree of unit vectors each); the tiles made
 together ask once per class for the craters whose footprint reaches them and that are at least
@@ -30,34 +31,30 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from pipeline.core.body import crater_shape
+from pipeline.core.math.streams import stream
+
 LOLA_CL_AMPLITUDE_M2 = 4.3e6  # degree variance fit C_l = A l^-beta to the LOLA DEM (l = 5-250)
 LOLA_CL_SLOPE = 2.14
 _PAD = 8  # spline padding (cells): the prefilter decays 0.27^8 ~ 3e-5 over it
 
 
-def _profiles():
-    """The profile functions: today the renderer's (imported here, not at the top, so that the
-    renderer can draw this terrain without an import cycle); `body.crater_shape` plugs in here."""
-    from pipeline.core.sensors import render
-
-    return render.crater_shapes, render.crater_profile
-
-
-def crater_depth_rim_m(diam_m: np.ndarray, depth_scale: np.ndarray, floor_fraction: float
+def crater_depth_rim_m(diam_m: np.ndarray, floor_fraction: float
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Depth rim-to-floor (m), rim height above the surroundings (m) and floor fraction of
-    craters of diameter diam_m, depth and rim scaled by depth_scale (degradation; 1 = fresh)."""
-    shapes = _profiles()[0](diam_m, floor_fraction)
-    return shapes.depth_m * depth_scale, shapes.rim_height_m * depth_scale, shapes.floor_fraction
+    """Fresh depth rim-to-floor (m), rim height above the surroundings (m) and floor fraction of
+    craters of diameter diam_m (`pipeline.core.body.crater_shape`: Pike 1977)."""
+    shapes = crater_shape.crater_shapes(diam_m, floor_fraction)
+    return shapes.depth_m, shapes.rim_height_m, shapes.floor_fraction
 
 
-def crater_relief_m(rho: np.ndarray, diam_m: np.ndarray, depth_scale: np.ndarray,
+def crater_relief_m(rho: np.ndarray, diam_m: np.ndarray, degradation: np.ndarray | float | None,
                     floor_fraction: float, ejecta_extent: float) -> np.ndarray:
     """Height (m) above the surroundings at normalised distance rho = r / R of craters of
-    diameter diam_m with their depth and rim scaled by depth_scale (degradation; 1 = fresh).
-    The one adapter to the profiles (Pike 1977; `_profiles`)."""
-    depth, rim, floor = crater_depth_rim_m(diam_m, depth_scale, floor_fraction)
-    return _profiles()[1](rho, depth, rim, floor, ejecta_extent)
+    diameter diam_m and normalised age `degradation` (kappa t / R^2; None: fresh): the
+    profiles of `pipeline.core.body.crater_shape` (Pike 1977, diffused after Fassett &
+    Thomson 2014)."""
+    depth, rim, floor = crater_depth_rim_m(diam_m, floor_fraction)
+    return crater_shape.crater_profile(rho, depth, rim, floor, ejecta_extent, degradation)
 
 
 # --- base -----------------------------------------------------------------------------------------
@@ -107,7 +104,7 @@ def synthetic_base_grid(seed: int, fwhm_m: float, radius_m: float, lmax: int = 2
     """A seeded synthetic long-wavelength field: Gaussian spherical-harmonic coefficients of
     degree variance LOLA_CL_AMPLITUDE_M2 l^-LOLA_CL_SLOPE (l >= 1; module docstring), times a
     Gaussian beam of FWHM fwhm_m."""
-    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0xBA5E,)))
+    rng = stream(seed, "terrain_base")
     ell = np.arange(lmax + 1, dtype=float)
     cl = np.where(ell >= 1, LOLA_CL_AMPLITUDE_M2 * np.maximum(ell, 1.0) ** -LOLA_CL_SLOPE, 0.0)
     cl = cl * hp.gauss_beam(fwhm_m / radius_m, lmax=lmax) ** 2
@@ -162,23 +159,24 @@ class _SizeClass:
 
 
 class CraterField:
-    """Catalogue craters (unit centres (N, 3) MCMF, diameters (N,) m, depth scales (N,)) indexed
+    """Catalogue craters (unit centres (N, 3) MCMF, diameters (N,) m, normalised ages (N,) or
+    None: fresh) indexed
     by size class for tile queries; heights by summed profiles (module docstring)."""
 
-    def __init__(self, u: np.ndarray, diam_m: np.ndarray, depth_scale: np.ndarray | None,
+    def __init__(self, u: np.ndarray, diam_m: np.ndarray, degradation: np.ndarray | None,
                  floor_fraction: float, ejecta_extent: float, radius_m: float) -> None:
         u = np.asarray(u, dtype=float).reshape(-1, 3)
         self.u = u / np.linalg.norm(u, axis=1, keepdims=True) if len(u) else u
         self.diam_m = np.asarray(diam_m, dtype=float).reshape(-1)
-        self.depth_scale = (np.ones_like(self.diam_m) if depth_scale is None
-                            else np.broadcast_to(np.asarray(depth_scale, float),
+        self.degradation = (None if degradation is None
+                            else np.broadcast_to(np.asarray(degradation, float),
                                                  self.diam_m.shape).copy())
         self.floor_fraction, self.extent, self.radius_m = floor_fraction, ejecta_extent, radius_m
         self.classes: list[_SizeClass] = []
         if not self.diam_m.size:
             self.rim_max_m = self.depth_max_m = 0.0
             return
-        depth, rim, _ = crater_depth_rim_m(self.diam_m, self.depth_scale, floor_fraction)
+        depth, rim, _ = crater_depth_rim_m(self.diam_m, floor_fraction)  # fresh: the bounds
         self.rim_max_m, self.depth_max_m = float(rim.max()), float(depth.max())
         k = np.floor(np.log2(self.diam_m)).astype(np.int64)
         for kv in np.unique(k):
@@ -256,7 +254,9 @@ class CraterField:
         r = rows[ci][:, None]
         rho = 2.0 * np.arcsin(np.minimum(chord / 2.0, 1.0)) * self.radius_m / (
             self.diam_m[r] / 2.0)
-        h = crater_relief_m(rho, self.diam_m[r], self.depth_scale[r], self.floor_fraction,
+        h = crater_relief_m(rho, self.diam_m[r],
+                            None if self.degradation is None else self.degradation[r],
+                            self.floor_fraction,
                             self.extent)
         valid = (rho < self.extent) & (idx < nodes.shape[0])
         out += np.bincount(np.where(valid, idx, nodes.shape[0]).ravel(),

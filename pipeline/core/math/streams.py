@@ -1,4 +1,5 @@
-"""The run's random streams: one registry of the tags that keep them apart within the run seed.
+"""The run's random streams: one registry of the tags that keep them apart within a seed (the run
+seed, or a section's own: the world's, the terrain's, the map's).
 
 Every random draw of a run comes from `stream(seed, purpose, *keys)`: a PCG64 generator seeded by
 `SeedSequence(seed, spawn_key=(TAGS[purpose], *keys))`, keys such as the frame number making a
@@ -21,6 +22,11 @@ TAGS: dict[str, int] = {
     "rough_velocity": 0x1D6,  # lost in space: the rough velocity a fix starts the filter with
     "render": 0x12E4D,  # per frame: the rendered surface's roughness and the sensor's noise
     "velocimeter": 0xD0F,  # the Doppler velocimeter's noise (the closed loop)
+    # the world's, each within its own section's seed
+    "degradation": 0xD17F,  # each world crater's normalised age (detection.world_seed)
+    "terrain_base": 0xBA5E,  # the synthetic long-wavelength base (terrain.seed)
+    "terrain_roughness": 0x7E4,  # the roughness' octave rotations, offsets, keys (terrain.seed)
+    "map": 0x3A9,  # the flight map's drawn shift and bias (map.seed)
 }
 
 

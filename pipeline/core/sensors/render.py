@@ -20,19 +20,11 @@ the given craters' profiles and a seeded fractal roughness. A frame is rendered 
 5. Sensor: optional Gaussian blur (optics), shot noise (Gaussian approximation of Poisson, exact
    in variance), read noise, full-well clipping and quantisation to `bits`.
 
-Crater morphometry (fresh lunar craters; D and lengths in km in the fits), Pike, R. J. (1977),
-"Size-dependence in the shape of fresh impact craters on the Moon", in Impact and Explosion
-Cratering, Pergamon, pp. 489-509 (also Melosh 1989, "Impact Cratering", Table 6.1):
-- simple (D < 15 km): depth rim-to-floor d = 0.196 D (Pike: 0.196 D^1.010), rim height above the
-  surroundings h_r = 0.036 D (Pike: 0.036 D^1.014); a parabolic bowl, rim crest at r = R;
-- complex (D >= 15 km): d = 1.044 D^0.301, h_r = 0.236 D^0.399; flat floor of diameter
-  `floor_fraction` D (default 0.4; Pike's D_f = 0.187 D^1.249 gives 0.4-0.6 D over 20-100 km)
-  and a smooth concave wall h ~ u^2 from the floor edge (u = 0) to the crest (u = 1);
-- outside the rim: the ejecta blanket thickness decays as (r / R)^-3 (McGetchin, Settle & Head
-  1973, "Radial thickness variation in impact crater ejecta", EPSL 20, 226-236), scaled to h_r at
-  the crest and tapered to zero value and slope at r = `ejecta_extent` R (default 2).
-Profiles add (superposition); the rim crest therefore sits at h_r plus the other craters'
-heights there (`rim_crests`).
+Crater profiles (`pipeline.core.body.crater_shape`): Pike's (1977) fresh shapes, simple bowls
+and flat-floored complex craters with tapered ejecta, optionally degraded by topographic diffusion
+(per crater, its normalised age kappa t / R^2; Fassett & Thomson 2014). Profiles add
+(superposition); the rim crest therefore sits at h_r plus the other craters' heights there
+(`rim_crests`).
 
 Roughness: fractional Brownian surface, power spectrum ~ (k^2 + k0^2)^-(H + 1) with Hurst exponent
 H (default 0.9; LOLA gives 0.8-0.95 for the maria at 17 m-2 km baselines: Rosenburg et al. 2011,
@@ -65,57 +57,16 @@ import numpy as np
 from scipy import fft, ndimage
 from scipy.spatial import cKDTree
 
+from pipeline.core.body.crater_shape import (
+    CraterShapes,
+    crater_profile,
+    crater_shapes,
+)
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors.camera import PixelCamera, ray_sphere_distance
 from pipeline.core.sensors.conics import tangent_basis
 
-SIMPLE_COMPLEX_TRANSITION_M = 15e3  # Pike 1977: simple-to-complex transition diameter, ~15 km
 _SIZE_LADDER = np.unique(np.round(2.0 ** (np.arange(2, 27) / 2.0)).astype(np.int64))  # 2..8192
-
-
-# --- morphometry and profiles ---------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class CraterShapes:
-    """Per-crater profile parameters (N,): depth rim-to-floor (m), rim height (m), floor radius
-    as a fraction of the rim radius (0 for a bowl)."""
-
-    depth_m: np.ndarray
-    rim_height_m: np.ndarray
-    floor_fraction: np.ndarray
-
-
-def crater_shapes(diam_m: np.ndarray, floor_fraction: float = 0.4,
-                  transition_m: float = SIMPLE_COMPLEX_TRANSITION_M) -> CraterShapes:
-    """Fresh-crater depth, rim height and floor size of diameters (N,) m (Pike 1977, see the
-    module docstring)."""
-    d_km = np.asarray(diam_m, dtype=float) / 1e3
-    simple = d_km * 1e3 < transition_m
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depth = np.where(simple, 0.196 * d_km, 1.044 * d_km ** 0.301) * 1e3
-        rim = np.where(simple, 0.036 * d_km, 0.236 * d_km ** 0.399) * 1e3
-    return CraterShapes(depth, rim, np.where(simple, 0.0, floor_fraction))
-
-
-def crater_profile(rho: np.ndarray, depth_m: np.ndarray, rim_height_m: np.ndarray,
-                   floor_fraction: np.ndarray, ejecta_extent: float = 2.0) -> np.ndarray:
-    """Height (m) above the surroundings at normalised distance rho = r / R from the centre
-    (broadcast arrays): floor at h_r - d, wall h_r - d + d u^2 with u = (rho - f) / (1 - f) on
-    [f, 1], crest h_r at rho = 1, ejecta h_r (rho^-3 tapered) to zero at rho = ejecta_extent."""
-    rho = np.asarray(rho)
-    f = np.asarray(floor_fraction, dtype=rho.dtype)
-    u = np.maximum(rho - f, 0) / (1 - f)
-    inner = rim_height_m - depth_m + depth_m * u * u
-    return np.where(rho <= 1, inner, rim_height_m * _ejecta_taper(rho, ejecta_extent))
-
-
-def _ejecta_taper(rho: np.ndarray, extent: float) -> np.ndarray:
-    """rho^-3 minus its value and slope at `extent` (C1 zero there), 1 at rho = 1, 0 beyond."""
-    m3, m4 = extent ** -3.0, 3.0 * extent ** -4.0
-    norm = 1.0 / (1.0 - m3 + m4 * (1.0 - extent))
-    r = np.clip(rho, 1.0, extent)
-    return ((1.0 / (r * r * r) - m3 + m4 * (r - extent)) * norm).astype(np.asarray(rho).dtype)
 
 
 # --- photometry -----------------------------------------------------------------------------------
@@ -305,11 +256,12 @@ def _roughness_tile(rng: np.random.Generator, opts: TerrainOptions, cell_m: floa
 
 def _stamp_craters(grid: _Map, q_f: np.ndarray, e1_f: np.ndarray, e2_f: np.ndarray,
                    radius_m: np.ndarray, shapes: CraterShapes, opts: TerrainOptions,
-                   moon_radius: float) -> np.ndarray:
+                   moon_radius: float, degradation: np.ndarray | None = None) -> np.ndarray:
     """Sum of crater profiles on the map (ny * nx,) float64. Each crater's local coordinates
     (s, t) (m, along its tangent basis e1, e2) are affine in the map coordinates through the
     inverse of J = [[e1_x, e2_x], [e1_y, e2_y]] (F axes); boxes cover ejecta_extent R and are
-    padded to a ladder of sizes so each size class is one broadcast computation."""
+    padded to a ladder of sizes so each size class is one broadcast computation; `degradation`
+    (N,) the craters' normalised ages (None: all fresh)."""
     total = grid.nx * grid.ny
     m = _to_map(q_f, moon_radius)
     j00, j01, j10, j11 = e1_f[:, 0], e2_f[:, 0], e1_f[:, 1], e2_f[:, 1]
@@ -346,10 +298,11 @@ def _stamp_craters(grid: _Map, q_f: np.ndarray, e1_f: np.ndarray, e2_f: np.ndarr
         t = a[:, 2] * dx + a[:, 3] * dy
         rho = np.sqrt(s * s + t * t)
         f32 = np.float32
+        age = None if degradation is None else degradation[sel].astype(f32)[:, None, None]
         h = crater_profile(rho, shapes.depth_m[sel].astype(f32)[:, None, None],
                            shapes.rim_height_m[sel].astype(f32)[:, None, None],
                            shapes.floor_fraction[sel].astype(f32)[:, None, None],
-                           opts.ejecta_extent)
+                           opts.ejecta_extent, age)
         inside = (jj < grid.nx) & (ii < grid.ny) & (rho < opts.ejecta_extent)
         flats.append(np.where(inside, ii * grid.nx + jj, total).ravel())
         heights.append(h.ravel())
@@ -376,10 +329,12 @@ def _shadow_margin(height: np.ndarray, grid: _Map, frame: _Frame, moon_radius: f
 
 
 def rim_crests(c_mcmf_m: np.ndarray, diam_m: np.ndarray, radius_m: float = MOON_RADIUS_M,
-               opts: TerrainOptions | None = None) -> tuple[np.ndarray, np.ndarray]:
+               opts: TerrainOptions | None = None, degradation: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """Rendered rim crests as circles for `conics.rim_conics`: centres (N, 3) (m, MCMF) = the
-    catalogue centre's direction at radius_m + h_r + the other craters' heights there (ejecta,
-    bowls), and radii (N,) = D / 2. The roughness (random, metres) is not included."""
+    catalogue centre's direction at radius_m + the crater's height at rho = 1 (h_r when fresh)
+    + the other craters' heights there (ejecta, bowls), and radii (N,) = D / 2; `degradation`
+    (N,) the normalised ages (None: fresh). The roughness (random, metres) is not included."""
     opts = opts or TerrainOptions()
     c = np.atleast_2d(np.asarray(c_mcmf_m, dtype=float))
     d = np.atleast_1d(np.asarray(diam_m, dtype=float))
@@ -394,10 +349,13 @@ def rim_crests(c_mcmf_m: np.ndarray, diam_m: np.ndarray, radius_m: float = MOON_
     other = host != guest
     host, guest = host[other], guest[other]
     rho = np.linalg.norm(pts[guest] - pts[host], axis=1) / (d[host] / 2)
+    age = None if degradation is None else np.asarray(degradation, dtype=float)
     h = crater_profile(rho, depth[host], rim[host], shapes.floor_fraction[host],
-                       opts.ejecta_extent)
+                       opts.ejecta_extent, None if age is None else age[host])
     background = np.bincount(guest, h, minlength=len(d))
-    return u * (radius_m + rim + background)[:, None], d / 2
+    own = rim if age is None else crater_profile(np.ones(len(d)), depth, rim,
+                                                 shapes.floor_fraction, opts.ejecta_extent, age)
+    return u * (radius_m + own + background)[:, None], d / 2
 
 
 # --- per-pixel ray cast and shading ---------------------------------------------------------------
@@ -517,12 +475,13 @@ def expose(radiance_if: np.ndarray, rng: np.random.Generator, sensor: SensorOpti
 def render_frame(camera: PixelCamera, r_cam_mcmf_m: np.ndarray, dcm_cam_from_mcmf: np.ndarray,
                  u_sun_mcmf: np.ndarray, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
                  rng: np.random.Generator, radius_m: float = MOON_RADIUS_M,
-                 terrain: TerrainOptions | None = None, sensor: SensorOptions | None = None
-                 ) -> RenderedFrame:
+                 terrain: TerrainOptions | None = None, sensor: SensorOptions | None = None,
+                 degradation: np.ndarray | None = None) -> RenderedFrame:
     """Render one frame (module docstring): camera pose r_cam_mcmf_m (3,) m and
     dcm_cam_from_mcmf (3, 3); unit Sun direction (3,) MCMF; craters that can be in view (and
     up-sun casters of shadows into it): centres (N, 3) m MCMF (on the sphere; their direction is
-    used) and diameters (N,) m; `rng` draws the roughness and the sensor noise."""
+    used) and diameters (N,) m; `rng` draws the roughness and the sensor noise; `degradation`
+    (N,) each crater's normalised age kappa t / R^2 (`crater_shape`; None: all fresh)."""
     terrain = terrain or TerrainOptions()
     sensor = sensor or SensorOptions()
     r_cam = np.asarray(r_cam_mcmf_m, dtype=float)
@@ -553,8 +512,10 @@ def render_frame(camera: PixelCamera, r_cam_mcmf_m: np.ndarray, dcm_cam_from_mcm
         u = c / np.linalg.norm(c, axis=1, keepdims=True)
         e1, e2 = tangent_basis(u)
         rot = frame.dcm_f_from_mcmf
+        age = None if degradation is None else np.asarray(degradation, float).reshape(-1)
         hmap += _stamp_craters(grid, (u * radius_m) @ rot.T, e1 @ rot.T, e2 @ rot.T, d / 2, shapes,
-                               terrain, radius_m).reshape(grid.ny, grid.nx).astype(np.float32)
+                               terrain, radius_m, age).reshape(grid.ny, grid.nx
+                                                               ).astype(np.float32)
     hpack = _corner_pack(hmap)
     spack = (_corner_pack(_shadow_margin(hmap, grid, frame, radius_m))
              if terrain.cast_shadows else None)

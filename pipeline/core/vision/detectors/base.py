@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import ClassVar, Protocol
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 
 @dataclass(frozen=True)
@@ -45,3 +46,21 @@ class Detector(Protocol):
         """Rim ellipses, most confident first; `sun_dir_image` (2,) the Sun's image direction,
         None when unknown (a detector that needs it estimates it from the image)."""
         ...
+
+
+def suppress_duplicates(centre_px: np.ndarray, radius_px: np.ndarray) -> np.ndarray:
+    """Indices (ascending) of the rims kept among rims ordered most confident first (centres
+    (n, 2) px, radii (n,) px): a rim is dropped when a more confident one has its centre within
+    0.3 x the smaller radius and a radius within a factor exp(0.3)."""
+    c = np.asarray(centre_px, dtype=float).reshape(-1, 2)
+    r = np.asarray(radius_px, dtype=float)
+    if r.size < 2:
+        return np.arange(r.size)
+    close = cKDTree(c).query_pairs(0.5 * float(r.max()), output_type="ndarray")
+    drop = np.zeros(r.size, bool)
+    if close.size:
+        i, j = close.min(axis=1), close.max(axis=1)  # i is the more confident
+        dup = ((np.linalg.norm(c[i] - c[j], axis=1) < 0.3 * np.minimum(r[i], r[j]))
+               & (np.abs(np.log(r[i] / r[j])) < 0.3))
+        drop[j[dup]] = True
+    return np.flatnonzero(~drop)

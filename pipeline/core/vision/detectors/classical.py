@@ -46,7 +46,8 @@ from scipy.spatial import cKDTree
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors.camera import PixelCamera, ray_sphere_distance
 from pipeline.core.sensors.conics import ellipse_from_conic
-from pipeline.core.vision.detectors.base import Detections
+from pipeline.core.vision.detectors.base import Detections, suppress_duplicates
+from pipeline.core.vision.sun_direction import estimate_sun_direction
 
 
 @dataclass(frozen=True)
@@ -292,6 +293,65 @@ def _row_median(x: np.ndarray) -> np.ndarray:
     return np.where(n > 0, 0.5 * (lo + hi), np.inf)
 
 
+@dataclass(frozen=True)
+class RimFit:
+    """Rim ellipses fitted on the edges (n,): centres (n, 2) px, semi-axes px (grown by the
+    smoothing's curvature shift), angle rad, `ok` (a valid fit near the first guess; else the
+    first circle is kept), `residual` (RMS radial edge distance / radius; inf when not ok) and
+    `frac_used` (share of the usable edge directions that gave an edge)."""
+
+    centre_px: np.ndarray
+    semi_major_px: np.ndarray
+    semi_minor_px: np.ndarray
+    angle_rad: np.ndarray
+    ok: np.ndarray
+    residual: np.ndarray
+    frac_used: np.ndarray
+
+
+def refine_rims(g: np.ndarray, centre: np.ndarray, rad0: np.ndarray, sun: np.ndarray,
+                smooth_sigma_px: float, psf_sigma_px: float, n_angles: int = 64) -> RimFit:
+    """Steps 3-4 of the module docstring on a smoothed image g (H, W) (Gaussian sigma
+    smooth_sigma_px) around first guesses: centres (n, 2) px and radii (n,) px, Sun's unit image
+    direction (2,): rim edges on radial profiles, weighted ellipse fit, twice (bands 0.4, 0.2 of
+    the radius), then the semi-axes grown by (smooth^2 + psf^2) / (2 r) (a Gaussian-smoothed
+    circular edge peaks inside the rim by that much)."""
+    centre = np.asarray(centre, dtype=float).reshape(-1, 2)
+    rad0 = np.asarray(rad0, dtype=float)
+    perp = np.array([-sun[1], sun[0]])
+    m = n_angles
+    theta = 2 * np.pi * (np.arange(m) + 0.5) / m
+    dirs = np.cos(theta)[:, None] * sun + np.sin(theta)[:, None] * perp
+    radius_fn = np.repeat(rad0[:, None], m, 1)
+    frac_used = np.zeros(len(rad0))
+    resid = np.full(len(rad0), np.inf)
+    a, b, ang, ok = rad0, rad0, np.zeros(len(rad0)), np.zeros(len(rad0), bool)
+    for band in (0.4, 0.2):
+        pts, wgt = _rim_edges(g, centre, radius_fn, theta, sun, band)
+        pos = wgt > 0
+        med = _row_median(np.where(pos, wgt, np.nan))
+        wgt = np.where(wgt > 0.3 * med[:, None], wgt, 0.0)
+        frac_used = np.mean(wgt > 0, axis=1) / np.mean(np.abs(np.cos(theta)) > 0.42)
+        scale = np.maximum(rad0, 1.0)
+        conic = _fit_ellipses(pts, wgt, centre, scale)
+        ell = ellipse_from_conic(conic)
+        ok = ell.valid & (ell.semi_minor_px > 0.5 * rad0) & (ell.semi_major_px < 2 * rad0)
+        centre = np.where(ok[:, None], ell.centre_px, centre)
+        a = np.where(ok, ell.semi_major_px, rad0)
+        b = np.where(ok, ell.semi_minor_px, rad0)
+        ang = np.where(ok, ell.angle_rad, 0.0)
+        radius_fn = _ellipse_radius(centre, a, b, ang, centre, dirs)
+        rad0 = np.sqrt(a * b)
+        # residual: RMS radial distance of the used edges from the fitted ellipse, / radius
+        r_pts = np.linalg.norm(pts - centre[:, None, :], axis=-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            resid = np.sqrt(np.sum(wgt * (r_pts - radius_fn) ** 2, axis=1) / np.sum(wgt, axis=1))
+        resid = np.where(ok, resid / rad0, np.inf)
+    # A Gaussian-smoothed circular edge peaks inside the rim by ~sigma^2 / (2 r): add it back.
+    grow = (smooth_sigma_px ** 2 + psf_sigma_px ** 2) / (2 * rad0)
+    return RimFit(centre, a + grow, b + grow, ang, ok, resid, frac_used)
+
+
 # --- the detector ---------------------------------------------------------------------------------
 
 
@@ -317,37 +377,10 @@ def detect_craters(image: np.ndarray, sun_dir_image: np.ndarray,
     p_hi = np.maximum(dark.p_max[di], bright.p_max[bi]) + 0.5
     centre = np.outer(0.5 * (s_lo + s_hi), sun) + np.outer(0.5 * (p_lo + p_hi), perp)
     rad0 = 0.25 * ((s_hi - s_lo) + (p_hi - p_lo))
-    m = opts.n_angles
-    theta = 2 * np.pi * (np.arange(m) + 0.5) / m
-    dirs = np.cos(theta)[:, None] * sun + np.sin(theta)[:, None] * perp
-    radius_fn = np.repeat(rad0[:, None], m, 1)
-    conic = np.full((len(di), 3, 3), np.nan)
-    frac_used = np.zeros(len(di))
-    resid = np.full(len(di), np.inf)
-    for band in (0.4, 0.2):
-        pts, wgt = _rim_edges(g, centre, radius_fn, theta, sun, band)
-        pos = wgt > 0
-        med = _row_median(np.where(pos, wgt, np.nan))
-        wgt = np.where(wgt > 0.3 * med[:, None], wgt, 0.0)
-        frac_used = np.mean(wgt > 0, axis=1) / np.mean(np.abs(np.cos(theta)) > 0.42)
-        scale = np.maximum(rad0, 1.0)
-        conic = _fit_ellipses(pts, wgt, centre, scale)
-        ell = ellipse_from_conic(conic)
-        ok = ell.valid & (ell.semi_minor_px > 0.5 * rad0) & (ell.semi_major_px < 2 * rad0)
-        centre = np.where(ok[:, None], ell.centre_px, centre)
-        a = np.where(ok, ell.semi_major_px, rad0)
-        b = np.where(ok, ell.semi_minor_px, rad0)
-        ang = np.where(ok, ell.angle_rad, 0.0)
-        radius_fn = _ellipse_radius(centre, a, b, ang, centre, dirs)
-        rad0 = np.sqrt(a * b)
-        # residual: RMS radial distance of the used edges from the fitted ellipse, / radius
-        r_pts = np.linalg.norm(pts - centre[:, None, :], axis=-1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            resid = np.sqrt(np.sum(wgt * (r_pts - radius_fn) ** 2, axis=1) / np.sum(wgt, axis=1))
-        resid = np.where(ok, resid / rad0, np.inf)
-    # A Gaussian-smoothed circular edge peaks inside the rim by ~sigma^2 / (2 r): add it back.
-    grow = (opts.smooth_sigma_px ** 2 + opts.psf_sigma_px ** 2) / (2 * rad0)
-    a, b = a + grow, b + grow
+    fit = refine_rims(g, centre, rad0, sun, opts.smooth_sigma_px, opts.psf_sigma_px,
+                      opts.n_angles)
+    centre, a, b, ang = fit.centre_px, fit.semi_major_px, fit.semi_minor_px, fit.angle_rad
+    frac_used, resid = fit.frac_used, fit.residual
     rad0 = np.sqrt(a * b)
     conf = score * np.clip(frac_used, 0, 1) * np.exp(-0.5 * (resid / 0.05) ** 2)
     diam = 2 * rad0
@@ -356,29 +389,25 @@ def detect_craters(image: np.ndarray, sun_dir_image: np.ndarray,
             & (diam <= opts.max_diameter_px) & np.isfinite(conf))
     idx = np.flatnonzero(keep)
     idx = idx[np.argsort(-conf[idx], kind="stable")]
-    # duplicates: a less confident detection whose centre is within 0.3 R of a kept one, similar R
-    if idx.size > 1:
-        c, r = centre[idx], rad0[idx]
-        close = cKDTree(c).query_pairs(0.5 * float(r.max()), output_type="ndarray")
-        if close.size:
-            i, j = close.min(axis=1), close.max(axis=1)  # i is more confident (sorted)
-            dup = ((np.linalg.norm(c[i] - c[j], axis=1) < 0.3 * np.minimum(r[i], r[j]))
-                   & (np.abs(np.log(r[i] / r[j])) < 0.3))
-            drop = np.zeros(idx.size, bool)
-            drop[j[dup]] = True
-            idx = idx[~drop]
+    idx = idx[suppress_duplicates(centre[idx], rad0[idx])]
     return Detections(centre[idx], a[idx], b[idx], ang[idx], conf[idx])
 
 
 @dataclass(frozen=True)
 class ClassicalDetector:
-    """The crescent-pairing detector behind the `Detector` interface (it needs the Sun's image
-    direction)."""
+    """The crescent-pairing detector behind the `Detector` interface. Without the Sun's image
+    direction it takes the light's axis from the image (`sun_direction.estimate_sun_direction`)
+    and runs with both signs of it, keeping the one whose detections are the more confident in
+    sum (the wrong sign pairs crescents the wrong way round and fits few rims)."""
 
     name: ClassVar[str] = "classical"
     options: DetectOptions = DetectOptions()
 
     def detect(self, image: np.ndarray, sun_dir_image: np.ndarray | None = None) -> Detections:
         if sun_dir_image is None:
-            raise ValueError("the classical detector needs the Sun's image direction")
+            est = estimate_sun_direction(image)
+            if not np.all(np.isfinite(est.direction)):
+                return Detections.empty()
+            tries = [detect_craters(image, s * est.direction, self.options) for s in (1, -1)]
+            return max(tries, key=lambda d: float(np.sum(d.confidence)))
         return detect_craters(image, sun_dir_image, self.options)

@@ -1,0 +1,307 @@
+"""Craters in any image a user brings (`just detect-image`): read, detect, score against labels,
+write the table and overlays.
+
+Images: PNG, JPEG, TIFF (8 or 16 bit, grey or colour: colour goes to luminance, ITU-R BT.601
+weights as Pillow's "L"); larger than `MAX_PIXELS` is refused. Labels: the CSV of
+`lro_nac_craters` (`ID,X,Y,W,H,C_X,CY`: a circle of centre (C_X, CY), diameter (W + H) / 2 px)
+or YOLO text (`class xc yc w h` per line, normalised to the image's width and height when every
+value is <= 1, else pixels), as a file or a folder holding `<image stem>.txt` / `.csv`. A label
+and a detection match when the centres are within 0.25 x the label's diameter and the diameters
+differ by less than 25 % (one-to-one, `render.match_detections`). Pixel (0, 0) is the corner of
+the first pixel, u right, v down; the Sun's azimuth in the image is from +u towards +v (deg).
+"""
+
+from __future__ import annotations
+
+import csv
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+from PIL import Image, ImageDraw, UnidentifiedImageError
+
+from pipeline.core.vision.detectors import Detections, Detector
+from pipeline.core.vision.sun_direction import SunEstimate, estimate_sun_direction, sun_from_rims
+from pipeline.errors import PipelineError
+from pipeline.ops.render import match_detections
+
+MAX_PIXELS = 400_000_000  # 20,000 x 20,000
+OVERLAY_MAX_PX = 4096  # overlays are scaled down to this long side
+SIZE_BINS_PX = (10.0, 20.0, 50.0, np.inf)
+DETECTIONS_SCHEMA: dict[str, type[pl.DataType]] = {
+    "image": pl.String, "centre_u_px": pl.Float64, "centre_v_px": pl.Float64,
+    "semi_major_px": pl.Float64, "semi_minor_px": pl.Float64, "angle_rad": pl.Float64,
+    "confidence": pl.Float64}
+
+
+class ImageInputError(PipelineError):
+    """An image or label file that cannot be read as such."""
+
+
+def read_image(path: Path) -> np.ndarray:
+    """Grey levels (H, W) (uint8, uint16 or float32) of an image file; one-line errors for a
+    missing, unreadable, empty or oversized file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ImageInputError(f"{path}: no such file")
+    if path.stat().st_size == 0:
+        raise ImageInputError(f"{path}: empty file (0 bytes)")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            Image.MAX_IMAGE_PIXELS = MAX_PIXELS
+            with Image.open(path) as im:
+                w, h = im.size
+                if w == 0 or h == 0:
+                    raise ImageInputError(f"{path}: the image has no pixels ({w} x {h})")
+                if w * h > MAX_PIXELS:
+                    raise ImageInputError(f"{path}: {w} x {h} px is over {MAX_PIXELS:,} px")
+                arr = _grey(im)
+    except ImageInputError:
+        raise
+    except (UnidentifiedImageError, Image.DecompressionBombError) as exc:
+        raise ImageInputError(f"{path}: not a readable PNG, JPEG or TIFF image ({exc})"
+                              ) from None
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise ImageInputError(f"{path}: cannot decode the image ({exc})") from None
+    if arr.ndim != 2 or min(arr.shape) < 8:
+        raise ImageInputError(f"{path}: {arr.shape[1] if arr.ndim > 1 else arr.size} x "
+                              f"{arr.shape[0]} px is too small to hold a crater (8 px at least)")
+    return arr
+
+
+def _grey(im: Image.Image) -> np.ndarray:
+    """The image's grey levels: 8-bit as uint8, 16-bit as uint16, float as float32."""
+    if im.mode in ("I;16", "I;16B", "I;16L", "I;16N"):
+        return np.asarray(im).astype(np.uint16)
+    if im.mode in ("I", "F"):
+        return np.asarray(im).astype(np.float32)
+    if im.mode in ("L", "P", "RGB", "RGBA", "LA", "CMYK", "YCbCr", "1"):
+        return np.asarray(im.convert("L"))
+    arr = np.asarray(im)
+    return arr.mean(axis=-1).astype(np.float32) if arr.ndim == 3 else arr.astype(np.float32)
+
+
+def read_labels(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Label centres (n, 2) px and diameters (n,) px of a label file (module docstring) for an
+    image of `shape` (H, W)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ImageInputError(f"{path}: cannot read the labels ({exc})") from None
+    first = text.lstrip().splitlines()[0] if text.strip() else ""
+    try:
+        if "C_X" in first:
+            rows = list(csv.DictReader(text.splitlines()))
+            c = np.array([[float(r["C_X"]), float(r["CY"])] for r in rows]).reshape(-1, 2)
+            d = np.array([0.5 * (float(r["W"]) + float(r["H"])) for r in rows])
+            return c, d
+        vals = np.array([[float(x) for x in line.split()[1:5]]
+                         for line in text.splitlines() if line.strip()]).reshape(-1, 4)
+    except (KeyError, ValueError, IndexError) as exc:
+        raise ImageInputError(f"{path}: not a crater label CSV (ID,X,Y,W,H,C_X,CY) nor YOLO "
+                              f"text (class xc yc w h): {exc}") from None
+    h, w = shape
+    if vals.size and np.all(vals <= 1.0):
+        vals = vals * np.array([w, h, w, h])
+    return vals[:, :2], 0.5 * (vals[:, 2] + vals[:, 3])
+
+
+def labels_for(labels: Path, image: Path) -> Path | None:
+    """The label file of `image`: `labels` itself, or `<stem>.txt` / `.csv` in that folder."""
+    if labels.is_dir():
+        for ext in (".txt", ".csv"):
+            p = labels / (image.stem + ext)
+            if p.is_file():
+                return p
+        return None
+    return labels
+
+
+@dataclass(frozen=True)
+class Scores:
+    """Recall and precision by apparent diameter bin (`SIZE_BINS_PX`, lower edge in): per bin
+    the labels, those found, the detections (by their own diameter) and those matched."""
+
+    table: pl.DataFrame
+
+    def line(self, lo: float = 10.0) -> tuple[float, float]:
+        """Pooled recall and precision of the bins from `lo` up."""
+        t = self.table.filter(pl.col("diam_lo_px") >= lo)
+        n_lab, n_found = int(t["n_labels"].sum()), int(t["n_found"].sum())
+        n_det, n_true = int(t["n_detections"].sum()), int(t["n_matched"].sum())
+        return (n_found / n_lab if n_lab else float("nan"),
+                n_true / n_det if n_det else float("nan"))
+
+
+def score(det: Detections, label_centre: np.ndarray, label_diam: np.ndarray) -> Scores:
+    """Match detections to labels (module docstring) and tabulate by size (`Scores`)."""
+    det_d = 2.0 * np.sqrt(det.semi_major_px * det.semi_minor_px)
+    d2t, t2d = match_detections(det.centre_px, det_d / 2, label_centre, label_diam / 2,
+                                0.25, 0.25)
+    edges = np.asarray(SIZE_BINS_PX)
+    lb = np.searchsorted(edges, label_diam, side="right") - 1
+    db = np.searchsorted(edges, det_d, side="right") - 1
+    rows = []
+    for k in range(edges.size - 1):
+        lab, dd = lb == k, db == k
+        rows.append({"diam_lo_px": edges[k], "diam_hi_px": edges[k + 1],
+                     "n_labels": int(lab.sum()), "n_found": int(np.sum(lab & (t2d >= 0))),
+                     "n_detections": int(dd.sum()), "n_matched": int(np.sum(dd & (d2t >= 0)))})
+    t = pl.DataFrame(rows).with_columns(
+        recall=pl.col("n_found") / pl.col("n_labels"),
+        precision=pl.col("n_matched") / pl.col("n_detections")).fill_nan(None)
+    return Scores(t)
+
+
+def sun_direction_for(image: np.ndarray, azimuth_deg: float | None, det: Detections | None
+                      ) -> tuple[np.ndarray | None, str]:
+    """The Sun's image direction to use and a sentence saying where it comes from: given,
+    estimated from the shading inside detected rims, or from the whole image."""
+    if azimuth_deg is not None:
+        a = np.radians(azimuth_deg)
+        return np.array([np.cos(a), np.sin(a)]), f"Sun azimuth {azimuth_deg:g} deg (given)"
+    est: SunEstimate
+    if det is not None and len(det):
+        est = sun_from_rims(image, det.centre_px, np.sqrt(det.semi_major_px * det.semi_minor_px))
+        how = f"the shading inside {len(det)} detected rims"
+    else:
+        est = estimate_sun_direction(image)
+        how = "the image's dark and bright crescents"
+    if not np.isfinite(est.azimuth_rad):
+        return None, f"Sun direction: not found from {how}"
+    word = "estimated" if est.reliable else "unreliable estimate"
+    return (est.direction if est.reliable else None,
+            f"Sun azimuth {np.degrees(est.azimuth_rad):.0f} deg from +u towards +v ({word} from "
+            f"{how}, strength {est.strength:.2f})")
+
+
+def detect_image(detector: Detector, image: np.ndarray, sun_azimuth_deg: float | None
+                 ) -> tuple[Detections, str]:
+    """Detections in one image and the sentence on the Sun's direction (`sun_direction_for`):
+    a detector that needs the Sun (classical) gets it first; the learned one finds the rims
+    without it, and the Sun is then read from them."""
+    if detector.name == "classical" or sun_azimuth_deg is not None:
+        sun, said = sun_direction_for(image, sun_azimuth_deg, None)
+        if sun is None:
+            return Detections.empty(), said
+        return detector.detect(image, sun), said
+    det = detector.detect(image, None)
+    _, said = sun_direction_for(image, None, det)
+    return det, said
+
+
+def table(name: str, det: Detections) -> pl.DataFrame:
+    """The detections of one image as rows of `DETECTIONS_SCHEMA`."""
+    return pl.DataFrame({
+        "image": [name] * len(det), "centre_u_px": det.centre_px[:, 0],
+        "centre_v_px": det.centre_px[:, 1], "semi_major_px": det.semi_major_px,
+        "semi_minor_px": det.semi_minor_px, "angle_rad": det.angle_rad,
+        "confidence": det.confidence}, schema=DETECTIONS_SCHEMA)
+
+
+def _ellipse_points(c: np.ndarray, a: float, b: float, ang: float, k: float) -> list[float]:
+    t = np.linspace(0, 2 * np.pi, 40)
+    x = a * np.cos(t)
+    y = b * np.sin(t)
+    u = c[0] + x * np.cos(ang) - y * np.sin(ang)
+    v = c[1] + x * np.sin(ang) + y * np.cos(ang)
+    return np.stack([u * k, v * k], -1).ravel().tolist()
+
+
+def overlay(path: Path, image: np.ndarray, det: Detections,
+            labels: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    """A PNG of the image (stretched to 8 bits, scaled to at most OVERLAY_MAX_PX) with the
+    detected rims (green) and, given labels, the labels found (blue) and missed (red)."""
+    img = np.asarray(image, np.float32)
+    lo, hi = np.percentile(img[::max(1, img.shape[0] // 512), ::max(1, img.shape[1] // 512)],
+                           [0.5, 99.5])
+    grey = np.clip((img - lo) / max(hi - lo, 1e-9) * 255, 0, 255).astype(np.uint8)
+    k = min(1.0, OVERLAY_MAX_PX / max(img.shape))
+    pic = Image.fromarray(grey).convert("RGB")
+    if k < 1.0:
+        pic = pic.resize((max(1, round(img.shape[1] * k)), max(1, round(img.shape[0] * k))))
+    draw = ImageDraw.Draw(pic)
+    if labels is not None:
+        lc, ld = labels
+        det_d = 2.0 * np.sqrt(det.semi_major_px * det.semi_minor_px)
+        _, t2d = match_detections(det.centre_px, det_d / 2, lc, ld / 2, 0.25, 0.25)
+        for c, d, m in zip(lc, ld, t2d, strict=True):
+            draw.line(_ellipse_points(c, d / 2, d / 2, 0.0, k),
+                      fill=(60, 120, 255) if m >= 0 else (255, 40, 40), width=1)
+    for c, a, b, ang in zip(det.centre_px, det.semi_major_px, det.semi_minor_px, det.angle_rad,
+                            strict=True):
+        draw.line(_ellipse_points(c, a, b, ang, k), fill=(40, 255, 40), width=1)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pic.save(path)
+
+
+def run(paths: list[Path], detector: Detector, out_dir: Path, sun_azimuth_deg: float | None = None,
+        labels: Path | None = None) -> tuple[list[str], int]:
+    """`just detect-image`: each image read, detected, scored against its labels when given,
+    its overlay written (`<stem>_overlay.png`); then `detections.parquet` of all. Returns the
+    lines to print and the number of images that could not be read (each said in one line)."""
+    import time
+
+    lines: list[str] = []
+    parts: list[pl.DataFrame] = []
+    failed = 0
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pooled: list[pl.DataFrame] = []
+    for path in paths:
+        try:
+            img = read_image(path)
+            lab = None
+            lab_file = labels_for(labels, path) if labels is not None else None
+            if labels is not None and lab_file is None:
+                raise ImageInputError(f"{path}: no label file for it in {labels}")
+            if lab_file is not None:
+                lab = read_labels(lab_file, img.shape)
+        except ImageInputError as exc:
+            lines.append(f"error: {exc}")
+            failed += 1
+            continue
+        t0 = time.perf_counter()
+        det, said = detect_image(detector, img, sun_azimuth_deg)
+        ms = 1e3 * (time.perf_counter() - t0)
+        parts.append(table(path.name, det))
+        over = out_dir / f"{path.stem}_overlay.png"
+        overlay(over, img, det, lab)
+        lines.append(f"{path.name}: {img.shape[1]} x {img.shape[0]} px, {len(det)} craters "
+                     f"({detector.name}, {ms:.0f} ms); {said}; overlay {over}")
+        if lab is not None:
+            sc = score(det, *lab)
+            pooled.append(sc.table)
+            lines.extend(_score_lines(sc, f"  against {lab_file}"))
+    if len(pooled) > 1:
+        total = pl.concat(pooled).group_by("diam_lo_px", "diam_hi_px", maintain_order=True).agg(
+            pl.col("n_labels", "n_found", "n_detections", "n_matched").sum()).with_columns(
+            recall=pl.col("n_found") / pl.col("n_labels"),
+            precision=pl.col("n_matched") / pl.col("n_detections")).fill_nan(None)
+        lines.extend(_score_lines(Scores(total), f"  pooled over {len(pooled)} images"))
+    out = out_dir / "detections.parquet"
+    frame = pl.concat(parts) if parts else pl.DataFrame(schema=DETECTIONS_SCHEMA)
+    tmp = out.with_suffix(".parquet.tmp")
+    frame.write_parquet(tmp)
+    tmp.replace(out)
+    lines.append(f"wrote {out} ({frame.height:,} craters in {len(parts)} images)")
+    return lines, failed
+
+
+def _score_lines(sc: Scores, head: str) -> list[str]:
+    rec, prec = sc.line(10.0)
+    out = [f"{head}: recall {rec:.3f}, precision {prec:.3f} (craters >= 10 px; centre within "
+           "0.25 D, diameter within 25 %)"]
+    for r in sc.table.iter_rows(named=True):
+        label = f"{r['diam_lo_px']:g}+" if np.isinf(r["diam_hi_px"]) else \
+            f"{r['diam_lo_px']:g}-{r['diam_hi_px']:g}"
+
+        def pct(x: float | None) -> str:
+            return "  -  " if x is None else f"{x:.3f}"
+
+        out.append(f"    {label:>7} px: {r['n_labels']:5d} labels, recall {pct(r['recall'])}; "
+                   f"{r['n_detections']:5d} detections, precision {pct(r['precision'])}")
+    return out

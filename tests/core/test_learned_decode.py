@@ -1,0 +1,93 @@
+"""The learned detector's pure part: input normalisation, heatmap decoding, tiling of large
+images and the rim refinement, with a stand-in network (the real one is tested in
+tests/test_learned_detector.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.core.vision.detectors import learned
+from pipeline.core.vision.detectors.base import suppress_duplicates
+
+
+def _maps(h: int, w: int, peaks: list[tuple[int, int, float, float, float]]) -> np.ndarray:
+    """Network-like output (4, h, w): logit -8 everywhere, +4 at each (i, j) peak with its
+    offsets (du, dv) and radius r px."""
+    m = np.zeros((4, h, w), np.float32)
+    m[0] = -8.0
+    for i, j, du, dv, r in peaks:
+        m[0, i, j] = 4.0
+        m[1, i, j] = np.log(r)
+        m[2, i, j], m[3, i, j] = du, dv
+    return m
+
+
+def test_decode_places_centres_in_corner_pixel_coordinates() -> None:
+    maps = _maps(16, 16, [(3, 5, 0.25, -0.5, 7.0), (10, 2, 0.0, 0.0, 30.0)])
+    maps[0, 10, 2] = 5.0  # the more confident comes first
+    c, r, p = learned.decode(maps, 0.3, 10.0, 500.0)
+    # cell (i, j) covers u in [4j, 4j + 4): its centre is u = 4 (j + 0.5)
+    np.testing.assert_allclose(c, [[4 * (2 + 0.5), 4 * (10 + 0.5)],
+                                   [4 * (5 + 0.5 + 0.25), 4 * (3 + 0.5 - 0.5)]], atol=1e-5)
+    np.testing.assert_allclose(r, [30.0, 7.0], rtol=1e-6)
+    assert np.all(p > 0.98)
+    c, r, _ = learned.decode(maps, 0.3, 20.0, 500.0)  # 14 px is below the smallest diameter
+    assert len(r) == 1 and r[0] == pytest.approx(30.0)
+
+
+def test_normalise_is_a_robust_z_score_for_any_bit_depth() -> None:
+    rng = np.random.default_rng(1)
+    img8 = rng.integers(80, 120, (64, 64)).astype(np.uint8)
+    img16 = img8.astype(np.uint16) * 257 + 1000
+    np.testing.assert_allclose(learned.normalise(img8), learned.normalise(img16), atol=1e-4)
+    assert np.all(learned.normalise(np.full((32, 32), 7, np.uint8)) == 0)
+
+
+class _MarkerNet:
+    """Stands in for the network: a heatmap peak in each 4 x 4 cell whose pixels are all above
+    3 (the normalised image), radius 8 px; records the input shapes it was given."""
+
+    def __init__(self) -> None:
+        self.shapes: list[tuple[int, ...]] = []
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        self.shapes.append(x.shape)
+        img = x[0, 0]
+        h, w = img.shape[0] // 4, img.shape[1] // 4
+        cells = img[:4 * h, :4 * w].reshape(h, 4, w, 4).min(axis=(1, 3))
+        maps = np.zeros((1, 4, h, w), np.float32)
+        maps[0, 0] = np.where(cells > 3, 6.0, -8.0)
+        maps[0, 1] = np.log(8.0)
+        return maps
+
+
+def test_tiles_cover_a_large_image_once() -> None:
+    img = np.zeros((300, 5000), np.float32)
+    img[::2, ::2] = 1.0  # texture, so the robust scale is not zero
+    marks = [(100, 10), (100, 1530), (100, 1600), (200, 2047), (40, 4990), (260, 3000)]
+    for v, u in marks:
+        img[v:v + 4, u - u % 4:u - u % 4 + 4] = 50.0
+    net = _MarkerNet()
+    det = learned.LearnedDetector(net, learned.LearnedOptions(refine=False, tile_px=2048,
+                                                              tile_overlap_px=512))
+    out = det.detect(img)
+    assert len(net.shapes) == 3  # three tiles along u, one along v
+    assert all(s[2] % 32 == 0 and s[3] % 32 == 0 for s in net.shapes)
+    got = sorted(map(tuple, np.round(out.centre_px).astype(int).tolist()))
+    want = sorted((u - u % 4 + 2, v - v % 4 + 2) for v, u in marks)
+    assert got == want
+
+
+def test_suppress_duplicates_keeps_the_more_confident() -> None:
+    c = np.array([[10.0, 10.0], [11.0, 10.0], [40.0, 40.0], [10.0, 10.0]])
+    r = np.array([10.0, 10.5, 10.0, 30.0])  # the last: same centre, another size
+    np.testing.assert_array_equal(suppress_duplicates(c, r), [0, 2, 3])
+
+
+def test_too_small_or_not_grey_image_is_refused() -> None:
+    det = learned.LearnedDetector(_MarkerNet())
+    with pytest.raises(ValueError, match="at least 8 x 8"):
+        det.detect(np.zeros((4, 100)))
+    with pytest.raises(ValueError, match="grey image"):
+        det.detect(np.zeros((32, 32, 3)))
