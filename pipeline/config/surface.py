@@ -3,9 +3,10 @@ what its altimeter model and its craters' heights use). Read by the closed loop 
 
 The world is the reference sphere (the paper) or a terrain model
 (`pipeline.core.body.terrain`: the catalogue's craters on a long-wavelength base with seeded
-roughness). The map is the world's own surface (a perfect map), the sphere (a navigator that
-models its altimeter over a sphere), or the world's terrain seen through a flight map's errors
-(a horizontal shift, a vertical bias, a coarser resolution).
+roughness). The map is the world's own surface (a perfect map), the sphere through the site (a
+navigator that models its altimeter over a sphere at its target's elevation), or the world's
+terrain seen through a flight map's errors (a horizontal shift, a vertical bias, a coarser
+resolution).
 """
 
 from __future__ import annotations

@@ -136,10 +136,12 @@ def tables(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFram
         "n_identified": [int(f.identified.sum()) for f in per_frame],
         "n_used": [int(f.used.sum()) for f in per_frame],
         "n_false_match": [int(f.false_match.sum()) for f in per_frame],
+        "n_terrain_shadowed": [f.n_shadowed for f in per_frame],
         **{f"corner{j + 1}_lat_deg": np.degrees(lat[:, j]) for j in range(4)},
         **{f"corner{j + 1}_lon_deg": np.degrees(lon[:, j]) for j in range(4)},
     }, schema_overrides={"n_candidates": pl.Int64, "n_identified": pl.Int64,
-                         "n_used": pl.Int64, "n_false_match": pl.Int64})
+                         "n_used": pl.Int64, "n_false_match": pl.Int64,
+                         "n_terrain_shadowed": pl.Int64})
     if sun_mcmf_m is not None:
         frames_table = frames_table.with_columns(**sun_columns(model, trajectory, sun_mcmf_m))
     return detections, frames_table

@@ -18,6 +18,9 @@ not modelled (nadir-ish views). The truth ellipses are those of the *undistorted
 while the rendered image goes through the camera's lens model: with a distorting lens the centre
 and size errors include the distortion (the scenarios that render use zero distortion).
 
+On a terrain (`RenderOptions.surface`, the closed loop's world) the image draws the terrain and
+the truth's rims sit on its rim crests (`pipeline.core.body.relief`).
+
 Match: a detection and a true rim are admissible when the centres are within
 `match_centre_share` x the true apparent diameter and the semi-majors differ by less than
 `match_size_share` (relative); among admissible pairs the assignment with the most pairs, then
@@ -36,6 +39,8 @@ import polars as pl
 from scipy.optimize import linear_sum_assignment, minimize
 
 from pipeline.core.body import illumination
+from pipeline.core.body.relief import rim_crests
+from pipeline.core.body.surface import Surface
 from pipeline.core.math import tiling
 from pipeline.core.sensors import camera, conics, render
 from pipeline.core.sensors import rim_sensor as sensor
@@ -58,6 +63,7 @@ class RenderOptions:
     sensor: render.SensorOptions = field(default_factory=render.SensorOptions)
     detect: crater_detect.DetectOptions = field(default_factory=crater_detect.DetectOptions)
     detector: Detector | None = None  # None: the classical detector with `detect`
+    surface: Surface | None = None  # the world's terrain to draw (None: craters and roughness)
     match_centre_share: float = 0.25
     match_size_share: float = 0.2
     min_truth_px: float = 5.0
@@ -194,7 +200,7 @@ def scene_rows(model: DetectionModel, craters: CraterArrays, world: sensor.World
     d_max = float(world.diam_m[rows].max())
     t = opts.terrain
     shape = render.crater_shapes(np.array([d_max]), t.floor_fraction)
-    relief = float((shape.depth_m[0] + shape.rim_height_m[0]) * t.depth_scale)
+    relief = float(shape.depth_m[0] + shape.rim_height_m[0])
     sin_elev = float(np.clip(u_sun_mcmf @ centre, -1.0, 1.0))
     tan_elev = max(sin_elev / np.sqrt(max(1.0 - sin_elev**2, 1e-12)), 0.05)
     shadow = min(relief / tan_elev, cap * model.moon_radius_m) if t.cast_shadows else 0.0
@@ -232,7 +238,8 @@ def render_and_detect(model: DetectionModel, craters: CraterArrays, world: senso
 
     t0 = time.perf_counter()
     frame = render.render_frame(cam, r, dcm_cam, u_sun, c, d, rng, radius,
-                                terrain=opts.terrain, sensor=opts.sensor, degradation=age)
+                                terrain=opts.terrain, sensor=opts.sensor, degradation=age,
+                                surface=opts.surface)
     t1 = time.perf_counter()
     sun_img = crater_detect.sun_direction_image(cam, r, dcm_cam, u_sun, radius_m=radius)
     if not np.all(np.isfinite(sun_img)):
@@ -244,7 +251,10 @@ def render_and_detect(model: DetectionModel, craters: CraterArrays, world: senso
     t2 = time.perf_counter()
 
     # truth: the rendered rim crests overlapping the image; counted: wholly inside, big enough
-    crest, rim_r = render.rim_crests(c, d, radius, opts.terrain, age)
+    if opts.surface is None:
+        crest, rim_r = render.rim_crests(c, d, radius, opts.terrain, age)
+    else:  # the terrain's rim crests (`relief`): what it draws
+        crest, rim_r = rim_crests(c, d, opts.surface, age), d / 2
     ell = conics.ellipse_from_conic(conics.rim_conics(crest, rim_r, r, dcm_cam, cam.k))
     cos, sin = np.cos(ell.angle_rad), np.sin(ell.angle_rad)
     a, b = ell.semi_major_px, ell.semi_minor_px

@@ -4,8 +4,10 @@ config sections terrain and map, and the craters of the flight's corridor set on
 
 - world: the reference sphere, or a `Terrain` of the world's craters (the catalogue plus its
   errors: the truth) on its base;
-- map: the world's own surface (a perfect map), the sphere, or the world's terrain through a
-  flight map's errors (`Terrain.navigator_map`: shifted, biased, no finer than its resolution).
+- map: the world's own surface (a perfect map), the sphere through the site (at the world's
+  height there: a navigator that knows only its target's elevation), or the world's terrain
+  through a flight map's errors (`Terrain.navigator_map`: shifted, biased, no finer than its
+  resolution).
 The corridor: the craters within reach of the nominal path (the coast on the descent orbit, then
 a straight descent to the site), whose rims are raised to their crests on the world (where the
 camera sees them) and on the map (where the navigator believes them).
@@ -24,7 +26,7 @@ from pipeline.core.body.terrain_fields import LatLonGrid
 from pipeline.core.dynamics.gravity import gravity_mci
 from pipeline.core.guidance.targeting import DescentOrbit
 from pipeline.core.math.constants import MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
-from pipeline.core.math.frames import mcmf_from_mci
+from pipeline.core.math.frames import mcmf_from_mci, unit_mcmf_from_latlon
 
 PATH_STEP_S = 5.0  # the nominal path's sampling on the coast (s)
 PATH_DESCENT_POINTS = 120  # and from PDI down to the site
@@ -50,18 +52,27 @@ class Surfaces:
     map: Surface
 
 
+def world_surface(terrain: TerrainOptions | None, base_grid: LatLonGrid | None,
+                  world_c_mcmf_m: np.ndarray, world_diam_m: np.ndarray,
+                  degradation: np.ndarray | None = None) -> Surface:
+    """The world's surface: the sphere (no terrain), or the terrain of the world's craters
+    (centres (N, 3) m, diameters (N,) m, normalised ages (N,) or None) on its base."""
+    if terrain is None:
+        return Sphere()
+    return Terrain.build(terrain, world_c_mcmf_m, world_diam_m, degradation, base_grid)
+
+
 def build_surfaces(o: SurfaceOptions, world_c_mcmf_m: np.ndarray, world_diam_m: np.ndarray,
                    degradation: np.ndarray | None = None) -> Surfaces:
-    """The world's surface (of the world's craters: centres (N, 3) m, diameters (N,) m, depth
-    scales (N,)) and the navigator's map (module docstring)."""
-    if o.terrain is None:
-        world: Surface = Sphere()
-    else:
-        world = Terrain.build(o.terrain, world_c_mcmf_m, world_diam_m, degradation, o.base_grid)
+    """The world's surface (`world_surface`) and the navigator's map (module docstring)."""
+    world = world_surface(o.terrain, o.base_grid, world_c_mcmf_m, world_diam_m, degradation)
     if o.map_kind == "truth":
         return Surfaces(world, world)
-    if o.map_kind == "sphere" or not isinstance(world, Terrain):
-        return Surfaces(world, Sphere())
+    if o.map_kind == "sphere":  # through the site: a navigator that knows its target's height
+        e = o.map_errors
+        site = unit_mcmf_from_latlon(np.radians(e.site_lat_deg), np.radians(e.site_lon_deg))
+        return Surfaces(world, Sphere(world.reference_radius_m + float(world.height_m(site))))
+    assert isinstance(world, Terrain)  # the config checks: a terrain map of a terrain world
     return Surfaces(world, world.navigator_map(o.map_errors))
 
 
@@ -98,7 +109,8 @@ def on_surface(c_mcmf_m: np.ndarray, diam_m: np.ndarray, rows: np.ndarray, surfa
                degradation: np.ndarray | None = None) -> np.ndarray:
     """The centres (N, 3) with those of `rows` raised to their rim crests on `surface` (a copy;
     the array itself on the sphere)."""
-    if isinstance(surface, Sphere) or not rows.size:
+    if not rows.size or (isinstance(surface, Sphere) and
+                         surface.reference_radius_m == MOON_RADIUS_M):
         return c_mcmf_m
     out = np.array(c_mcmf_m, dtype=float, copy=True)
     out[rows] = rim_crests(out[rows], np.asarray(diam_m)[rows], surface,

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.core.body.surface import Sphere
 from pipeline.core.math.frames import dcm_mci_from_mcmf
 from pipeline.core.navigation import filter
 from pipeline.core.navigation.navigator import FrameResult, Navigator
@@ -63,8 +64,9 @@ class RimCamera:
         rngs = frame_rngs(self.seed, frame)
         r, dcm, theta = world.r_mcmf_m(), world.dcm_body_from_mcmf(), world.theta_rad()
         sun = self.sun(t_s)
+        terrain = None if isinstance(world.surface, Sphere) else world.surface
         sensed = sense_frame(self.model, self.false_share, self.seen, self.world, r, dcm, sun,
-                             rngs)
+                             rngs, terrain)
         tracker = navigator.tracker
         v_rough = world.state.v_mci_m_s if tracker is None else tracker.x.v_mci_m_s
         result = navigator.camera_frame(t_s, frame, theta, sensed, r, dcm, sun, rngs, v_rough)

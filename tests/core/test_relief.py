@@ -39,9 +39,12 @@ def test_rim_crests_sit_where_the_rim_circles_are_on_the_terrain():
     np.testing.assert_allclose(_unit(lifted), _unit(centres), atol=1e-12)
 
 
-def test_the_sphere_leaves_the_centres_alone():
+def test_a_sphere_puts_the_centres_on_itself():
     c = R * _unit(np.random.default_rng(1).normal(size=(5, 3)))
-    np.testing.assert_array_equal(rim_crests(c, np.full(5, 1e3), Sphere()), c)
+    np.testing.assert_allclose(rim_crests(c, np.full(5, 1e3), Sphere()), c, rtol=0, atol=1e-6)
+    raised = rim_crests(c, np.full(5, 1e3), Sphere(R + 2500.0))  # through a site 2.5 km up
+    np.testing.assert_allclose(np.linalg.norm(raised, axis=1), R + 2500.0)
+    np.testing.assert_allclose(_unit(raised), _unit(c), atol=1e-12)
 
 
 def test_the_corridor_holds_the_craters_the_flight_can_resolve():

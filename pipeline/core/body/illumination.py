@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from pipeline.core.body.surface import Sphere, Surface
 from pipeline.core.math import frames
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.math.rotations import cross
@@ -204,3 +205,21 @@ def ground_sample_distance_m(range_m: npt.ArrayLike, focal_length_px: npt.ArrayL
     rng = np.asarray(range_m, dtype=float)
     return rng / np.asarray(focal_length_px, dtype=float) / np.cos(np.asarray(emission_rad,
                                                                               dtype=float))
+
+
+def in_terrain_shadow(surface: Surface, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
+                      sun_mcmf_m: np.ndarray) -> np.ndarray:
+    """Whether the terrain hides the Sun from each crater (centres (N, 3) m MCMF at their rim
+    crests, diameters (N,) m): the ray from the centre, 2 % of D above the crest, toward the
+    Sun meets the surface (read at D / 4). A crater's own walls clear it (the crest is at the
+    ray's start height); what can cast it is the terrain beyond: a larger crater's rim, a hill,
+    a mountain (the long shadows of a low Sun). Never on the sphere."""
+    c = np.asarray(c_mcmf_m, dtype=float).reshape(-1, 3)
+    d = np.asarray(diam_m, dtype=float).reshape(-1)
+    if isinstance(surface, Sphere) or not len(c):
+        return np.zeros(len(c), bool)
+    up = c / np.linalg.norm(c, axis=1, keepdims=True)
+    origin = c + (0.02 * d)[:, None] * up
+    to_sun = np.asarray(sun_mcmf_m, dtype=float) - origin
+    to_sun /= np.linalg.norm(to_sun, axis=1, keepdims=True)
+    return np.isfinite(surface.intersect(origin, to_sun, 0.25 * d))

@@ -43,11 +43,13 @@ def in_reach(c_mcmf_m: np.ndarray, diam_m: np.ndarray, path_mcmf_m: np.ndarray,
 
 def rim_crests(c_mcmf_m: np.ndarray, diam_m: np.ndarray, surface: Surface,
                degradation: np.ndarray | None = None) -> np.ndarray:
-    """Crater centres (N, 3) (m, given on or about the reference sphere) raised along their
-    verticals by their rim crests' heights on `surface` (`Surface.rim_crest_heights_m`, module
-    docstring). The sphere leaves them unchanged."""
+    """Crater centres (N, 3) (m, given on the reference sphere) raised along their verticals by
+    their rim crests' heights on `surface` (`Surface.rim_crest_heights_m`, module docstring);
+    on a sphere, moved onto it."""
     c = np.asarray(c_mcmf_m, dtype=float)
-    if isinstance(surface, Sphere) or not len(c):
+    if not len(c):
         return c
     up = c / np.linalg.norm(c, axis=-1, keepdims=True)
+    if isinstance(surface, Sphere):
+        return up * surface.reference_radius_m
     return c + surface.rim_crest_heights_m(c, diam_m, degradation)[:, None] * up

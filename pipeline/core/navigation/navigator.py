@@ -225,7 +225,7 @@ class Navigator:
             rho_true_m=s.rho_true_m,
             u_meas_body=u_meas, rho_meas_m=rho_meas, pixel_uv=pixel, identified=identified,
             used=used, n_candidates=s.n_candidates, d_min_km=float("nan"),
-            corners_mcmf_m=s.corners_mcmf_m, physical=columns)
+            corners_mcmf_m=s.corners_mcmf_m, physical=columns, n_shadowed=s.n_shadowed)
         return FrameResult(det, mode, confidence, s.truth_row < 0, ok, elapsed_ms, index_ms,
                            float(sigma_px))
 

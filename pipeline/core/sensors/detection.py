@@ -15,6 +15,7 @@ from typing import Protocol
 import numpy as np
 
 from pipeline.core.body import illumination
+from pipeline.core.body.surface import Surface
 from pipeline.core.estimation import measurement
 from pipeline.core.math import tiling
 from pipeline.core.math.streams import seed_sequence
@@ -120,6 +121,7 @@ class FrameDetections:
     d_min_km: float  # Eq. 9 threshold at this altitude
     corners_mcmf_m: np.ndarray  # (4, 3) limit lines' surface intersections, NaN where they miss
     physical: dict[str, np.ndarray] | None = None  # the physical sensor's columns (n,) each
+    n_shadowed: int = 0  # candidates the terrain's shadow hid (physical sensor on a terrain)
 
     @property
     def false_match(self) -> np.ndarray:
@@ -206,6 +208,7 @@ class SensedFrame:
     columns: dict[str, np.ndarray]  # PHYSICAL_COLUMNS but rho_size_m, (n,) each
     n_candidates: int  # in the field of view and on the visible side, any size
     corners_mcmf_m: np.ndarray  # (4, 3)
+    n_shadowed: int = 0  # lit, resolvable candidates the terrain's shadow hid
 
 
 def world_in_view(model: DetectionModel, craters: CraterArrays, world: sensor.World,
@@ -228,10 +231,12 @@ def world_in_view(model: DetectionModel, craters: CraterArrays, world: sensor.Wo
 
 def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.World,
                    r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
-                   rngs: dict[str, np.random.Generator], sun_mcmf_m: np.ndarray) -> SensedFrame:
+                   rngs: dict[str, np.random.Generator], sun_mcmf_m: np.ndarray,
+                   terrain: Surface | None = None) -> SensedFrame:
     """The physical sensor's detections of one frame: true rims (the world, not the catalogue)
     imaged as ellipses, detected by size and lighting (draws of rngs["detect"]), measured with
-    pixel noise (rngs["noise"]); no identities (`pipeline.core.sensors.rim_sensor`)."""
+    pixel noise (rngs["noise"]); no identities (`pipeline.core.sensors.rim_sensor`). On a
+    `terrain`, a crater in its shadow (`illumination.in_terrain_shadow`) is not detected."""
     phys = model.physical
     assert phys is not None
     cam = phys.camera
@@ -254,6 +259,9 @@ def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.W
     wide_enough = cam.fx_px * diam_true_m / (rho_m * cos_alpha**2) >= d.min_diameter_px
     keep = np.flatnonzero(in_view & lit & wide_enough)
     keep = keep[np.argsort(craters.crater_id[rows[keep]], kind="stable")]
+    shadowed = (np.zeros(keep.size, bool) if terrain is None else
+                illumination.in_terrain_shadow(terrain, c_true[keep], diam_true_m[keep],
+                                               sun_mcmf_m))
     conic = conics.rim_conics(c_true[keep], 0.5 * diam_true_m[keep], r_mcmf_m, dcm_cam_from_mcmf,
                               cam.k)
     true = conics.ellipse_from_conic(conic)
@@ -269,7 +277,7 @@ def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.W
     inside = (true.valid & (u - half_u >= 0) & (u + half_u <= cam.width_px)
               & (v - half_v >= 0) & (v + half_v <= cam.height_px))
     angles = illumination.crater_illumination_angles(c_true[keep], r_mcmf_m, sun_mcmf_m)
-    p_detect = np.where(inside, sensor.detection_probability(
+    p_detect = np.where(inside & ~shadowed, sensor.detection_probability(
         2.0 * np.nan_to_num(a), angles.incidence_rad, angles.emission_rad,
         min(cam.width_px, cam.height_px), phys.detectability), 0.0)
     detected = (rngs["detect"].random(keep.size) < p_detect) if keep.size else np.zeros(0, bool)
@@ -296,7 +304,7 @@ def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.W
         **{f"c_true_mcmf_{ax}_m": c_true[sel][:, i] for i, ax in enumerate("xyz")},
     }
     return SensedFrame(rows[sel], meas, true_sel, p_body[sel], columns, int(in_view.sum()),
-                       corners(model, r_mcmf_m, dcm_body_from_mcmf))
+                       corners(model, r_mcmf_m, dcm_body_from_mcmf), int(shadowed.sum()))
 
 
 def measure_physical(phys: PhysicalSensor, meas: sensor.EllipseMeasurement,
@@ -344,7 +352,8 @@ def _detect_physical(model: DetectionModel, phys: PhysicalSensor, craters: Crate
         u_meas_body=u_meas, rho_meas_m=rho_meas, pixel_uv=pixel, identified=identified,
         used=used, n_candidates=s.n_candidates, d_min_km=float("nan"),
         corners_mcmf_m=s.corners_mcmf_m,
-        physical={n: rho_size if n == "rho_size_m" else s.columns[n] for n in PHYSICAL_COLUMNS})
+        physical={n: rho_size if n == "rho_size_m" else s.columns[n] for n in PHYSICAL_COLUMNS},
+        n_shadowed=s.n_shadowed)
 
 
 def ranges(phys: PhysicalSensor, sigma_range_m: float, rho_true_m: np.ndarray,

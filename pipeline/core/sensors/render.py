@@ -1,7 +1,9 @@
 """Rendered camera images of a cratered Moon: terrain, ray casting, photometry, shadows, sensor.
 
 The scene is the reference sphere (radius `radius_m`) plus a height field (m, radial): the sum of
-the given craters' profiles and a seeded fractal roughness. A frame is rendered in five steps:
+the given craters' profiles and a seeded fractal roughness, or a terrain's own heights (a
+`Surface`, `pipeline.core.body.terrain`: the world the closed loop flies over, read at the map's
+cell). A frame is rendered in five steps:
 
 1. Frame F: a tangent frame at the point P0 where the boresight meets the sphere (the sub-camera
    point if it misses), x along the Sun's azimuth at P0, z up. A surface direction u (unit vector
@@ -62,6 +64,7 @@ from pipeline.core.body.crater_shape import (
     crater_profile,
     crater_shapes,
 )
+from pipeline.core.body.surface import Surface
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors.camera import PixelCamera, ray_sphere_distance
 from pipeline.core.sensors.conics import tangent_basis
@@ -99,7 +102,6 @@ class TerrainOptions:
     albedo: float = 0.12
     floor_fraction: float = 0.4
     ejecta_extent: float = 2.0
-    depth_scale: float = 1.0  # < 1 for degraded (shallower) craters
     roughness_rms_slope_deg: float = 4.0
     roughness_hurst: float = 0.9
     roughness_outer_cells: float = 16.0
@@ -239,6 +241,37 @@ def _map_grid(camera: PixelCamera, r_cam: np.ndarray, dcm_cam_from_mcmf: np.ndar
 # --- height map -----------------------------------------------------------------------------------
 
 
+def _surface_relief_m(camera: PixelCamera, r_cam: np.ndarray, dcm_cam_from_mcmf: np.ndarray,
+                      surface: Surface, radius: float) -> float:
+    """The spread (m) of a surface's heights over the view: read at the ground points of a
+    9 x 9 grid of pixels, at their spacing (what the margins must allow beyond the craters)."""
+    gu, gv = np.meshgrid(np.linspace(0.5, camera.width_px - 0.5, 9),
+                         np.linspace(0.5, camera.height_px - 0.5, 9))
+    rays = camera.bearings_cam(np.stack([gu.ravel(), gv.ravel()], -1)) @ dcm_cam_from_mcmf
+    d = ray_sphere_distance(r_cam, rays, radius)
+    ok = np.isfinite(d)
+    if ok.sum() < 2:
+        return 0.0
+    g = r_cam + d[ok, None] * rays[ok]
+    spacing = float(np.ptp(g, axis=0).max()) / 8.0
+    h = surface.height_m(g / np.linalg.norm(g, axis=1, keepdims=True), spacing)
+    return float(np.ptp(h))
+
+
+def _surface_heights(grid: _Map, frame: _Frame, surface: Surface, radius: float) -> np.ndarray:
+    """A surface's heights (ny, nx) float32 on the map grid (orthographic map coordinates of F:
+    u_F = (x, y, sqrt(R^2 - x^2 - y^2)) / R) at the grid's cell."""
+    x = grid.x0 + grid.cell * np.arange(grid.nx)
+    y = grid.y0 + grid.cell * np.arange(grid.ny)
+    xx, yy = np.meshgrid(x / radius, y / radius)
+    u_f = np.stack([xx, yy, np.sqrt(np.maximum(1.0 - xx * xx - yy * yy, 0.0))], -1)
+    out = np.empty((grid.ny, grid.nx), np.float32)
+    rows = max(1, 1_000_000 // grid.nx)  # blocks of ~1 M points bound the temporaries
+    for a in range(0, grid.ny, rows):
+        out[a:a + rows] = surface.height_m(u_f[a:a + rows] @ frame.dcm_f_from_mcmf, grid.cell)
+    return out
+
+
 def _roughness_tile(rng: np.random.Generator, opts: TerrainOptions, cell_m: float) -> np.ndarray:
     """Periodic fBm tile (T, T) float32 (m) with RMS one-cell slope tan(roughness_rms_slope)."""
     t = opts.roughness_tile_cells
@@ -340,7 +373,7 @@ def rim_crests(c_mcmf_m: np.ndarray, diam_m: np.ndarray, radius_m: float = MOON_
     d = np.atleast_1d(np.asarray(diam_m, dtype=float))
     u = c / np.linalg.norm(c, axis=1, keepdims=True)
     shapes = crater_shapes(d, opts.floor_fraction)
-    depth, rim = shapes.depth_m * opts.depth_scale, shapes.rim_height_m * opts.depth_scale
+    depth, rim = shapes.depth_m, shapes.rim_height_m
     pts = u * radius_m
     tree = cKDTree(pts)
     hits = tree.query_ball_point(pts, r=opts.ejecta_extent * d / 2)
@@ -476,12 +509,16 @@ def render_frame(camera: PixelCamera, r_cam_mcmf_m: np.ndarray, dcm_cam_from_mcm
                  u_sun_mcmf: np.ndarray, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
                  rng: np.random.Generator, radius_m: float = MOON_RADIUS_M,
                  terrain: TerrainOptions | None = None, sensor: SensorOptions | None = None,
-                 degradation: np.ndarray | None = None) -> RenderedFrame:
+                 degradation: np.ndarray | None = None, surface: Surface | None = None
+                 ) -> RenderedFrame:
     """Render one frame (module docstring): camera pose r_cam_mcmf_m (3,) m and
     dcm_cam_from_mcmf (3, 3); unit Sun direction (3,) MCMF; craters that can be in view (and
     up-sun casters of shadows into it): centres (N, 3) m MCMF (on the sphere; their direction is
     used) and diameters (N,) m; `rng` draws the roughness and the sensor noise; `degradation`
-    (N,) each crater's normalised age kappa t / R^2 (`crater_shape`; None: all fresh)."""
+    (N,) each crater's normalised age kappa t / R^2 (`crater_shape`; None: all fresh).
+    `surface`: a terrain to draw instead (`pipeline.core.body.terrain`: its heights on the map
+    grid at the grid's cell, its craters and roughness its own; the craters given then only
+    size the margins)."""
     terrain = terrain or TerrainOptions()
     sensor = sensor or SensorOptions()
     r_cam = np.asarray(r_cam_mcmf_m, dtype=float)
@@ -493,9 +530,9 @@ def render_frame(camera: PixelCamera, r_cam_mcmf_m: np.ndarray, dcm_cam_from_mcm
     hgt, wid = camera.height_px, camera.width_px
     frame = _frame(r_cam, dcm, u_sun, radius_m)
     shapes = crater_shapes(d, terrain.floor_fraction)
-    shapes = CraterShapes(shapes.depth_m * terrain.depth_scale,
-                          shapes.rim_height_m * terrain.depth_scale, shapes.floor_fraction)
     relief = float(np.max(shapes.depth_m + shapes.rim_height_m, initial=0.0))
+    if surface is not None:  # what varies within the view, sampled coarsely, and the craters
+        relief += _surface_relief_m(camera, r_cam, dcm, surface, radius_m)
     grid = _map_grid(camera, r_cam, dcm, frame, radius_m, relief, terrain)
     empty = np.zeros((hgt, wid), np.float32)
     if grid is None:
@@ -504,11 +541,13 @@ def render_frame(camera: PixelCamera, r_cam_mcmf_m: np.ndarray, dcm_cam_from_mcm
                              empty.astype(bool), float("nan"))
     # height map
     hmap = np.zeros((grid.ny, grid.nx), np.float32)
-    if terrain.roughness_rms_slope_deg > 0:
+    if surface is not None:
+        hmap += _surface_heights(grid, frame, surface, radius_m)
+    elif terrain.roughness_rms_slope_deg > 0:
         tile = _roughness_tile(rng, terrain, grid.cell)
         reps = (-(-grid.ny // tile.shape[0]), -(-grid.nx // tile.shape[1]))
         hmap += np.tile(tile, reps)[:grid.ny, :grid.nx]
-    if len(d):
+    if len(d) and surface is None:
         u = c / np.linalg.norm(c, axis=1, keepdims=True)
         e1, e2 = tangent_basis(u)
         rot = frame.dcm_f_from_mcmf

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.core.body.surface import Surface
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors import camera
 from pipeline.core.sensors import rim_sensor as sensor
@@ -37,6 +38,7 @@ class Sensed:
     columns: dict[str, np.ndarray]
     n_candidates: int
     corners_mcmf_m: np.ndarray  # (4, 3)
+    n_shadowed: int = 0  # candidates hidden in the terrain's shadow
 
 
 Sensing = Callable[[int, dict[str, np.random.Generator]], Sensed]  # frame index, its streams
@@ -44,15 +46,17 @@ Sensing = Callable[[int, dict[str, np.random.Generator]], Sensed]  # frame index
 
 def sense_frame(model: DetectionModel, false_detection_share: float, seen: CraterArrays,
                 world: sensor.World, r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
-                sun_mcmf_m: np.ndarray, rngs: dict[str, np.random.Generator]) -> Sensed:
+                sun_mcmf_m: np.ndarray, rngs: dict[str, np.random.Generator],
+                terrain: Surface | None = None) -> Sensed:
     """The physical sensor model's detections (`sense_physical`) of the world (`seen`, its
     craters with the catalogue errors `world`) from one true pose r_mcmf_m (3,) (m),
     dcm_body_from_mcmf (3, 3), under the Sun sun_mcmf_m (3,) (m), plus false detections
-    (`false_ellipses`)."""
+    (`false_ellipses`); on a `terrain`, none in its shadow."""
     phys = model.physical
     assert phys is not None
     cam = phys.camera
-    s = sense_physical(model, seen, world, r_mcmf_m, dcm_body_from_mcmf, rngs, sun_mcmf_m)
+    s = sense_physical(model, seen, world, r_mcmf_m, dcm_body_from_mcmf, rngs, sun_mcmf_m,
+                       terrain)
     fake = false_ellipses(rngs["false"], s.row.size, false_detection_share,
                           cam.width_px, cam.height_px, phys.detectability.min_diameter_px)
     u_fake = sensor.bearings_body(cam, fake, None)
@@ -62,7 +66,7 @@ def sense_frame(model: DetectionModel, false_detection_share: float, seen: Crate
     return Sensed(concat_ellipses(s.meas, fake), np.r_[s.row, np.full(pad.size, -1)],
                   np.vstack([s.p_body_m / rho[:, None], u_fake]), np.r_[rho, rho_fake],
                   {name: np.r_[col, pad] for name, col in s.columns.items()},
-                  s.n_candidates, s.corners_mcmf_m)
+                  s.n_candidates, s.corners_mcmf_m, s.n_shadowed)
 
 
 def model_sensing(model: DetectionModel, false_detection_share: float, seen: CraterArrays,
