@@ -180,3 +180,27 @@ def touchdown_table(rec: FlightRecord, target: Target, heading_deg: float, vehic
             "propellant_used_kg": vehicle.wet_mass_kg - c.mass_kg,
             "propellant_left_kg": c.mass_kg - vehicle.dry_mass_kg})
     return pl.DataFrame([row])
+
+
+SITE_TERRAIN_HALF_M = 2_000.0  # the site's terrain table: +- this east and north of the target
+SITE_TERRAIN_STEP_M = 20.0
+
+
+def site_terrain_table(world: Surface, flight_map: Surface, target: Target) -> pl.DataFrame:
+    """The ground around the target on a grid in its tangent plane (east_m, north_m, m): the
+    world's and the map's heights (m above the reference sphere, read at the grid's step), and
+    the world's slope (deg, at the step): what the lander came down on, and what its navigator
+    believed."""
+    up, east, north, _, _ = _site_axes(target, 0.0)
+    k = np.arange(-SITE_TERRAIN_HALF_M, SITE_TERRAIN_HALF_M + 0.5 * SITE_TERRAIN_STEP_M,
+                  SITE_TERRAIN_STEP_M)
+    e, n = (g.ravel() for g in np.meshgrid(k, k))
+    p = world.reference_radius_m * up + e[:, None] * east + n[:, None] * north
+    u = p / np.linalg.norm(p, axis=1, keepdims=True)
+    lat, lon, _ = frames.latlon_from_mcmf(u)
+    return pl.DataFrame({
+        "east_m": e, "north_m": n, "lat_deg": np.degrees(lat), "lon_deg": np.degrees(lon),
+        "world_height_m": world.height_m(u, SITE_TERRAIN_STEP_M),
+        "map_height_m": flight_map.height_m(u, SITE_TERRAIN_STEP_M)
+        + (flight_map.reference_radius_m - world.reference_radius_m),
+        "world_slope_deg": world.slope_deg(u, SITE_TERRAIN_STEP_M)})

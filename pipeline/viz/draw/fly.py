@@ -22,8 +22,9 @@ def record_fly(ctx: Drawing) -> None:
     record_navigate(ctx)
     touchdown = table(ctx, "touchdown.parquet")
     row = touchdown.row(0, named=True)
-    site = unit_mcmf_from_latlon(np.radians(row["site_lat_deg"]),
-                                 np.radians(row["site_lon_deg"])) * row["site_radius_m"]
+    site = unit_mcmf_from_latlon(np.radians(row["target_lat_deg"]),
+                                 np.radians(row["target_lon_deg"])) * row["site_radius_m"]
     with layout.recording(ctx.store.run_id, ctx.output("flight.rrd")) as rec:
         flight.log_flight(rec, table(ctx, "guidance.parquet"), touchdown, site,
                           table(ctx, "trajectory.parquet"))
+        flight.log_site_terrain(rec, table(ctx, "site_terrain.parquet"))

@@ -1,6 +1,7 @@
 """The closed loop (stage `fly`): the site, the thrust flown, and guidance's series.
 
-Entities: /world/moon/site (the target, MCMF: it turns with the Moon), /world/spacecraft/thrust
+Entities: /world/moon/site (the target, MCMF: it turns with the Moon), /world/moon/site_terrain
+(the ground around it: a mesh of the world's heights, coloured by height), /world/spacecraft/thrust
 (the thrust flown, along body -z, its length the throttle times the chase scale), and series on
 `sim_time` alone (guidance runs at its own rate): /flight/throttle, /flight/mass_kg/{true,
 believed}, /flight/altitude_m, /flight/speed_m_s, /flight/phase (code), /flight/propellant_kg.
@@ -8,9 +9,12 @@ believed}, /flight/altitude_m, /flight/speed_m_s, /flight/phase (code), /flight/
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import rerun as rr
 
+from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.math.frames import unit_mcmf_from_latlon
 from pipeline.viz.rerun.grid import TimeGrid, send_grid_scalars
 from pipeline.viz.rerun.world import chase_scale
@@ -65,3 +69,24 @@ def log_flight(rec: rr.RecordingStream, guidance, touchdown, site_mcmf_m: np.nda
             [(u * float(np.linalg.norm(site_mcmf_m))).astype(np.float32)], radii=[100.0],
             colors=[TOUCHDOWN_COLOR],
             labels=[f"{row['status']}: {row['miss_m']:.1f} m from the site"]), static=True)
+
+
+def log_site_terrain(rec: rr.RecordingStream, site_terrain) -> None:
+    """The site's terrain table as a mesh (MCMF, m; vertical exaggeration none), coloured from
+    dark (low) to light (high) over its height range."""
+    n = math.isqrt(site_terrain.height)
+    if n < 2 or n * n != site_terrain.height:
+        return
+    lat = np.radians(site_terrain["lat_deg"].to_numpy())
+    lon = np.radians(site_terrain["lon_deg"].to_numpy())
+    h = site_terrain["world_height_m"].to_numpy()
+    pos = unit_mcmf_from_latlon(lat, lon) * (MOON_RADIUS_M + h)[:, None]
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij")
+    a = (i * n + j).ravel()
+    tri = np.concatenate([np.stack([a, a + 1, a + n], -1), np.stack([a + 1, a + n + 1, a + n],
+                                                                   -1)])
+    shade = (h - h.min()) / max(float(np.ptp(h)), 1e-9)
+    grey = (60 + 170 * shade).astype(np.uint8)
+    rec.log("/world/moon/site_terrain", rr.Mesh3D(
+        vertex_positions=pos.astype(np.float32), triangle_indices=tri.astype(np.uint32),
+        vertex_colors=np.stack([grey, grey, grey], -1)), static=True)
