@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.core.body.illumination import TerrainShadows
 from pipeline.core.body.surface import Sphere
 from pipeline.core.math.frames import dcm_mci_from_mcmf
 from pipeline.core.navigation import filter
@@ -59,14 +60,16 @@ class RimCamera:
                  ) -> None:
         self.model, self.seen, self.world, self.false_share, self.sun, self.seed = (
             model, seen, world, false_share, sun_mcmf_m, seed)
+        self.shadows: TerrainShadows | None = None  # on a terrain: its shadows, crater by crater
 
     def frame(self, world: World, navigator: Navigator, frame: int, t_s: float) -> Seen:
         rngs = frame_rngs(self.seed, frame)
         r, dcm, theta = world.r_mcmf_m(), world.dcm_body_from_mcmf(), world.theta_rad()
         sun = self.sun(t_s)
-        terrain = None if isinstance(world.surface, Sphere) else world.surface
+        if self.shadows is None and not isinstance(world.surface, Sphere):
+            self.shadows = TerrainShadows(world.surface, self.world.r_mcmf_m, self.world.diam_m)
         sensed = sense_frame(self.model, self.false_share, self.seen, self.world, r, dcm, sun,
-                             rngs, terrain)
+                             rngs, self.shadows)
         tracker = navigator.tracker
         v_rough = world.state.v_mci_m_s if tracker is None else tracker.x.v_mci_m_s
         result = navigator.camera_frame(t_s, frame, theta, sensed, r, dcm, sun, rngs, v_rough)

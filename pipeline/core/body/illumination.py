@@ -207,13 +207,17 @@ def ground_sample_distance_m(range_m: npt.ArrayLike, focal_length_px: npt.ArrayL
                                                                               dtype=float))
 
 
+SHADOW_MIN_RESOLUTION_M = 20.0  # casters finer than this are left to each crater's own shading
+
+
 def in_terrain_shadow(surface: Surface, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
                       sun_mcmf_m: np.ndarray) -> np.ndarray:
     """Whether the terrain hides the Sun from each crater (centres (N, 3) m MCMF at their rim
     crests, diameters (N,) m): the ray from the centre, 2 % of D above the crest, toward the
-    Sun meets the surface (read at D / 4). A crater's own walls clear it (the crest is at the
-    ray's start height); what can cast it is the terrain beyond: a larger crater's rim, a hill,
-    a mountain (the long shadows of a low Sun). Never on the sphere."""
+    Sun meets the surface (read at D / 4, no finer than `SHADOW_MIN_RESOLUTION_M`). A crater's
+    own walls clear it (the crest is at the ray's start height); what can cast it is the
+    terrain beyond: a larger crater's rim, a hill, a mountain (the long shadows of a low Sun).
+    Never on the sphere."""
     c = np.asarray(c_mcmf_m, dtype=float).reshape(-1, 3)
     d = np.asarray(diam_m, dtype=float).reshape(-1)
     if isinstance(surface, Sphere) or not len(c):
@@ -222,4 +226,25 @@ def in_terrain_shadow(surface: Surface, c_mcmf_m: np.ndarray, diam_m: np.ndarray
     origin = c + (0.02 * d)[:, None] * up
     to_sun = np.asarray(sun_mcmf_m, dtype=float) - origin
     to_sun /= np.linalg.norm(to_sun, axis=1, keepdims=True)
-    return np.isfinite(surface.intersect(origin, to_sun, 0.25 * d))
+    res = np.maximum(0.25 * d, SHADOW_MIN_RESOLUTION_M)
+    return np.isfinite(surface.intersect(origin, to_sun, res))
+
+
+class TerrainShadows:
+    """`in_terrain_shadow` of world craters (centres (N, 3) m at their crests, diameters (N,)
+    m) by row, each cast once and kept: over a descent the Sun moves < 0.2 deg in MCMF (the
+    Moon turns 0.55 deg an hour relative to it), so a crater's shadow does not change."""
+
+    def __init__(self, surface: Surface, c_mcmf_m: np.ndarray, diam_m: np.ndarray) -> None:
+        self.surface, self.c_mcmf_m, self.diam_m = surface, c_mcmf_m, diam_m
+        self._known: dict[int, bool] = {}
+
+    def shadowed(self, rows: np.ndarray, sun_mcmf_m: np.ndarray) -> np.ndarray:
+        """Whether each of `rows` (catalogue rows) is in the terrain's shadow."""
+        new = np.array([r for r in dict.fromkeys(rows.tolist()) if r not in self._known],
+                       dtype=np.int64)
+        if new.size:
+            hit = in_terrain_shadow(self.surface, self.c_mcmf_m[new], self.diam_m[new],
+                                    sun_mcmf_m)
+            self._known.update(zip(new.tolist(), hit.tolist(), strict=True))
+        return np.array([self._known[r] for r in rows.tolist()], dtype=bool)

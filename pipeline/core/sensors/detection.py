@@ -15,7 +15,6 @@ from typing import Protocol
 import numpy as np
 
 from pipeline.core.body import illumination
-from pipeline.core.body.surface import Surface
 from pipeline.core.estimation import measurement
 from pipeline.core.math import tiling
 from pipeline.core.math.streams import seed_sequence
@@ -232,11 +231,12 @@ def world_in_view(model: DetectionModel, craters: CraterArrays, world: sensor.Wo
 def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.World,
                    r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
                    rngs: dict[str, np.random.Generator], sun_mcmf_m: np.ndarray,
-                   terrain: Surface | None = None) -> SensedFrame:
+                   shadows: illumination.TerrainShadows | None = None) -> SensedFrame:
     """The physical sensor's detections of one frame: true rims (the world, not the catalogue)
     imaged as ellipses, detected by size and lighting (draws of rngs["detect"]), measured with
     pixel noise (rngs["noise"]); no identities (`pipeline.core.sensors.rim_sensor`). On a
-    `terrain`, a crater in its shadow (`illumination.in_terrain_shadow`) is not detected."""
+    terrain, a crater in its shadow (`shadows`: `illumination.TerrainShadows` of the world's
+    craters) is not detected."""
     phys = model.physical
     assert phys is not None
     cam = phys.camera
@@ -259,9 +259,8 @@ def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.W
     wide_enough = cam.fx_px * diam_true_m / (rho_m * cos_alpha**2) >= d.min_diameter_px
     keep = np.flatnonzero(in_view & lit & wide_enough)
     keep = keep[np.argsort(craters.crater_id[rows[keep]], kind="stable")]
-    shadowed = (np.zeros(keep.size, bool) if terrain is None else
-                illumination.in_terrain_shadow(terrain, c_true[keep], diam_true_m[keep],
-                                               sun_mcmf_m))
+    shadowed = (np.zeros(keep.size, bool) if shadows is None else
+                shadows.shadowed(rows[keep], sun_mcmf_m))
     conic = conics.rim_conics(c_true[keep], 0.5 * diam_true_m[keep], r_mcmf_m, dcm_cam_from_mcmf,
                               cam.k)
     true = conics.ellipse_from_conic(conic)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.core.body.surface import Surface
+from pipeline.core.body.illumination import TerrainShadows
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors import camera
 from pipeline.core.sensors import rim_sensor as sensor
@@ -47,16 +47,16 @@ Sensing = Callable[[int, dict[str, np.random.Generator]], Sensed]  # frame index
 def sense_frame(model: DetectionModel, false_detection_share: float, seen: CraterArrays,
                 world: sensor.World, r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
                 sun_mcmf_m: np.ndarray, rngs: dict[str, np.random.Generator],
-                terrain: Surface | None = None) -> Sensed:
+                shadows: TerrainShadows | None = None) -> Sensed:
     """The physical sensor model's detections (`sense_physical`) of the world (`seen`, its
     craters with the catalogue errors `world`) from one true pose r_mcmf_m (3,) (m),
     dcm_body_from_mcmf (3, 3), under the Sun sun_mcmf_m (3,) (m), plus false detections
-    (`false_ellipses`); on a `terrain`, none in its shadow."""
+    (`false_ellipses`); on a terrain, none in its shadow (`shadows`)."""
     phys = model.physical
     assert phys is not None
     cam = phys.camera
     s = sense_physical(model, seen, world, r_mcmf_m, dcm_body_from_mcmf, rngs, sun_mcmf_m,
-                       terrain)
+                       shadows)
     fake = false_ellipses(rngs["false"], s.row.size, false_detection_share,
                           cam.width_px, cam.height_px, phys.detectability.min_diameter_px)
     u_fake = sensor.bearings_body(cam, fake, None)
