@@ -36,6 +36,7 @@ from pipeline.core.math import frames, tiling
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.io.files import now_iso
 from pipeline.io.store import RunStore
+from pipeline.io.tables import reduced
 from pipeline.workspace import workspace
 
 SHARED_LU = workspace().root.parent / "shared" / "data" / "lu1319381_partial.parquet"
@@ -221,7 +222,7 @@ def bench_navigate(scratch: Scratch) -> list[Result]:
     imu_s = scratch.cli("imu", "--run-id", "bench-nav", "--force")
     nav_s = scratch.cli("navigate", "--run-id", "bench-nav", "--force")
     store = RunStore("bench-nav", scratch.dir / "runs")
-    facts = store.entry("navigate")["info"]
+    facts = store.info("navigate")
     return [
         _result("imu: 100 Hz increments and altimeter over the 3,000 s descent (command)", imu_s,
                 "s"),
@@ -291,7 +292,7 @@ def bench_identify(scratch: Scratch) -> list[Result]:
     ident = d.filter(pl.col("identified"))
     wrong = ident.filter(pl.col("matched_id") != pl.col("crater_id"))
     ms = tracked["id_ms"].to_numpy()
-    mean_det = float(tracked["n_visible"].mean() or 0.0)
+    mean_det = reduced(tracked["n_visible"].mean(), 0.0)
     out = [
         _result(f"identify tracking: share of real detections identified as their crater "
                 f"({tracked.height:,} frames, {real.height:,} real detections, 20 % false)",
@@ -381,7 +382,7 @@ def bench_render(scratch: Scratch) -> list[Result]:
         'extends = "images"\n\n[render]\nstride = 10\n')
     scratch.cli("run", "bench-images")
     store = RunStore("bench-images", scratch.dir / "runs")
-    facts = store.entry("render")["info"]
+    facts = store.info("render")
     window = load_config("images").scoring.table_window
     nav = pl.read_parquet(store.path("navigation_summary.parquet")).filter(
         (pl.col("source") == "filter") & (pl.col("window") == window))

@@ -106,7 +106,7 @@ def _images_scenario(scratch, results: list, result) -> None:
         'extends = "images-learned"\n\n[render]\nstride = 10\n')
     scratch.cli("run", "bench-images-learned")
     store = RunStore("bench-images-learned", scratch.dir / "runs")
-    facts = store.entry("render")["info"]
+    facts = store.info("render")
     window = load_config("images").scoring.table_window
     nav = pl.read_parquet(store.path("navigation_summary.parquet")).filter(
         (pl.col("source") == "filter") & (pl.col("window") == window))
