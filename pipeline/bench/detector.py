@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.bench.common import result
 from pipeline.workspace import workspace
 
 LOO_DIR = Path("runs") / "detector-loo"
@@ -130,11 +131,9 @@ def _images_scenario(scratch, results: list, result) -> None:
 
 def bench_detector(scratch) -> list:
     """The detector group (module docstring)."""
-    from pipeline.bench import _result
-
     results: list = []
-    _speed(results, _result)
-    _rendered(results, _result)
-    _real(results, _result)
-    _images_scenario(scratch, results, _result)
+    _speed(results, result)
+    _rendered(results, result)
+    _real(results, result)
+    _images_scenario(scratch, results, result)
     return results
