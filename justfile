@@ -100,7 +100,7 @@ bench *args:
 lint:
     ruff check pipeline tests
 
-# lint, types (core, ops, engine, campaign) and the import contract: what CI and pre-commit run
+# lint, types (all of pipeline/) and the import contract: what CI and pre-commit run
 check:
     ruff check pipeline tests
     mypy

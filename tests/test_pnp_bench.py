@@ -9,7 +9,7 @@ import builtins
 import numpy as np
 import pytest
 
-from pipeline import pnp_bench
+from pipeline.bench import pnp as pnp_bench
 
 cv2 = pytest.importorskip("cv2")
 

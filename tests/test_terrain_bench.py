@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.terrain_bench import run
+from pipeline.bench.terrain import run
 
 
 @pytest.mark.slow

@@ -38,7 +38,7 @@ def _coerce(value: Any, tp: Any, key: str, literal: str | None = None) -> Any:
             raise ConfigError(f"{key}: expected a list, got {value!r}")
         (item_tp, _ellipsis) = typing.get_args(tp)
         return tuple(_coerce(v, item_tp, f"{key}[{i}]") for i, v in enumerate(value))
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ConfigError(f"{key}: expected a table, got {value!r}")
         return _build(tp, value, key)
@@ -112,7 +112,7 @@ def _check_keys(cls: type, data: dict[str, Any], where: str) -> None:
     for name, value in data.items():
         tp = hints[name]
         item = typing.get_args(tp)[0] if typing.get_origin(tp) is tuple else tp
-        if dataclasses.is_dataclass(item):
+        if isinstance(item, type) and dataclasses.is_dataclass(item):
             for i, v in enumerate(value if isinstance(value, list) else [value]):
                 if isinstance(v, dict):
                     key = f"{prefix}{name}[{i}]" if isinstance(value, list) else f"{prefix}{name}"

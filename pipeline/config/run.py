@@ -21,8 +21,8 @@ from pipeline.config.scoring import ScoringConfig, SweepConfig
 from pipeline.config.surface import MapConfig, TerrainConfig
 from pipeline.config.trajectory import TrajectoryConfig
 from pipeline.core.guidance.targeting import descent_orbit
-from pipeline.core.sensors import imu
 from pipeline.core.sensors import rim_sensor as sensor
+from pipeline.core.sensors.imu import GRADES, ImuGrade
 from pipeline.errors import ConfigError
 
 
@@ -115,9 +115,9 @@ class RunConfig:
             _check(self.scoring.final_window_s <= impact, "scoring.final_window_s",
                    f"= {self.scoring.final_window_s:g} s is longer than the descent "
                    f"({impact:.3f} s)")
-            n = impact * self.imu.rate_hz
-            _check(n <= MAX_IMU_SAMPLES, "imu.rate_hz",
-                   f"= {self.imu.rate_hz:g} Hz over the {impact:.0f} s descent makes {n:.3g} "
+            n_imu = impact * self.imu.rate_hz
+            _check(n_imu <= MAX_IMU_SAMPLES, "imu.rate_hz",
+                   f"= {self.imu.rate_hz:g} Hz over the {impact:.0f} s descent makes {n_imu:.3g} "
                    f"samples, above the limit of {MAX_IMU_SAMPLES:,}")
 
     def _check_closed_loop(self) -> None:
@@ -162,11 +162,11 @@ class RunConfig:
                f"= {f.max_duration_s:g} s at {f.dynamics_rate_hz:g} Hz makes {n_samples:.3g} "
                f"steps, above the limit of {MAX_IMU_SAMPLES:,}")
 
-    def navigator_imu(self) -> imu.ImuGrade:
+    def navigator_imu(self) -> ImuGrade:
         """The IMU error model the filter assumes: navigation.assumed_imu_grade's preset, or the
         simulated IMU's own ("truth")."""
         assumed = self.navigation.assumed_imu_grade
-        return self.imu.model() if assumed is None else imu.GRADES[assumed]
+        return self.imu.model() if assumed is None else GRADES[assumed]
 
     def navigator_altimeter_sigma(self, rho_m: float) -> float:
         """The altimeter noise 1-sigma (m) the filter assumes at a slant range (m)."""

@@ -57,7 +57,8 @@ class PairIndexStore:
     def save(self, params: dict[str, float], index: PairIndex) -> Path:
         path = self.path(params)
         buf = io.BytesIO()
-        np.savez(buf, params=np.array(json.dumps(self._key(params))), **index.to_arrays())
+        arrays = {"params": np.array(json.dumps(self._key(params))), **index.to_arrays()}
+        np.savez(buf, allow_pickle=False, **arrays)
         self.directory.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(path, buf.getvalue())
         return path

@@ -38,7 +38,7 @@ def recording_file(application_id: str, recording_id: str, path: Path,
         return
     rec = rr.RecordingStream(application_id, recording_id=recording_id)
     rec.set_log_time_enabled(False)
-    stream = rec.binary_stream()
+    stream = rr.binary_stream(rec)
     if blueprint is not None:
         rec.send_blueprint(blueprint, make_active=False, make_default=True)
     ok = False

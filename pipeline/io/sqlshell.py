@@ -343,8 +343,8 @@ def list_tables(session: Session) -> Result:
             name = f"{database}.{table}"
         else:
             name = table
-        (n,) = con.execute(f"SELECT count(*) FROM {_ident(database)}.main.{_ident(table)}"
-                           ).fetchone()
+        [(n,)] = con.execute(f"SELECT count(*) FROM {_ident(database)}.main.{_ident(table)}"
+                             ).fetchall()
         names.append(name)
         where.append(f"run {session.run_id}" if in_run else f"campaign {session.campaign}"
                      if database == CAMPAIGN_ALIAS else "catalogue")

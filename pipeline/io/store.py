@@ -98,6 +98,15 @@ class RunStore:
         except (OSError, json.JSONDecodeError):
             return None
 
+    def info(self, stage: str) -> dict[str, Any]:
+        """The committed entry's facts of `stage` (its `info`); StageInputError when it never
+        committed."""
+        e = self.entry(stage)
+        if e is None:
+            raise StageInputError(f"run {self.run_id!r} has no committed {stage!r} stage: run "
+                                  f"`just run {self.run_id}` first")
+        return e.get("info", {})
+
     def token(self, stage: str) -> str | None:
         """The committed folder's name of `stage` (changes with every commit)."""
         link = self.stage_dir(stage)

@@ -3,8 +3,20 @@ quaternions as <prefix>_x, _y, _z, _w (scalar-last), flat so that SQL reads them
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import polars as pl
+
+
+def reduced(value: object, default: float = math.nan) -> float:
+    """A numeric column's reduction as a float (polars types `Series.mean()`, `.max()`,
+    `.median()` as any Python value): `default` for None (an empty or all-null column)."""
+    if value is None:
+        return default
+    if not isinstance(value, int | float):
+        raise TypeError(f"expected a number, got {value!r}")
+    return float(value)
 
 
 def xyz_columns(prefix: str, unit: str, a: np.ndarray) -> dict[str, np.ndarray]:

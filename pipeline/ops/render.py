@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field, replace
+from typing import Any
 
 import numpy as np
 import polars as pl
@@ -47,6 +48,7 @@ from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.core.sensors.detection import CraterArrays, DetectionModel
 from pipeline.core.vision.detectors import Detections, Detector
 from pipeline.core.vision.detectors import classical as crater_detect
+from pipeline.io.tables import reduced
 
 DIAM_BINS_PX = (5.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0, np.inf)
 INCIDENCE_BINS_DEG = (0.0, 30.0, 50.0, 70.0, 80.0, 90.0)
@@ -474,7 +476,7 @@ def headline(truth: pl.DataFrame, detections: pl.DataFrame, images: pl.DataFrame
 
     n_false = int((detections["crater_id"] < 0).sum()) if n_det else 0
     return {
-        "recall_10px_inc30_80": float(sel["detected"].mean()) if sel.height else float("nan"),  # type: ignore[arg-type]
+        "recall_10px_inc30_80": reduced(sel["detected"].mean()) if sel.height else float("nan"),
         "n_truth_10px_inc30_80": float(sel.height),
         "precision": (n_det - n_false) / n_det if n_det else float("nan"),
         "false_per_image": n_false / n_img if n_img else float("nan"),
@@ -528,7 +530,7 @@ def calibrate_detectability(truth: pl.DataFrame, base: sensor.Detectability,
     step = np.array([s for g in groups for s in g[3]])
 
     def unpack(x: np.ndarray) -> sensor.Detectability:
-        kw: dict[str, object] = {}
+        kw: dict[str, Any] = {}
         k = 0
         for name, vals, _, _ in groups:
             p = x[k:k + len(vals)]
@@ -541,7 +543,7 @@ def calibrate_detectability(truth: pl.DataFrame, base: sensor.Detectability,
                 kw["incidence_rise_deg"] = (float(p[0]), float(p[0] + p[1]))
             else:
                 kw["incidence_fall_deg"] = (float(p[0]), float(min(p[0] + p[1], 90.0)))
-        return replace(base, **kw)  # type: ignore[arg-type]
+        return replace(base, **kw)
 
     def nll(x: np.ndarray) -> float:
         p = sensor.detection_probability(diam, inc_rad, emi_rad, image_side_px, unpack(x))

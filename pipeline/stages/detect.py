@@ -21,6 +21,7 @@ from pipeline.errors import StageInputError
 from pipeline.io import ephemeris
 from pipeline.io.catalogue import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.io.pair_index import PairIndexStore
+from pipeline.io.tables import reduced
 from pipeline.ops.detect import detect_all, model_of
 from pipeline.ops.identify import identify_all
 from pipeline.stages.estimate import options as estimate_options
@@ -106,14 +107,14 @@ def run(ctx: StageContext) -> StageResult:
     tx.table("detections", detections)
     tx.table("frames", frames_table)
     n = frames_table
-    peak = int(n["n_visible"].max()) if n.height else 0
+    peak = int(reduced(n["n_visible"].max())) if n.height else 0
     folder = ctx.store.stage_dir("detect")
     return StageResult(
         info={"fov_convention": cfg.detection.fov_convention,
               "edge_half_angle_deg": float(np.degrees(model.fov.edge_half_angle_rad)),
               "corner_half_angle_deg": float(np.degrees(model.fov.corner_half_angle_rad)),
               "catalogue_key": craters.meta["key"], "peak_visible": peak,
-              "mean_used": float(n["n_used"].mean()) if n.height else 0.0},
+              "mean_used": reduced(n["n_used"].mean()) if n.height else 0.0},
         summary=(
             f"wrote {folder / 'detections.parquet'} ({detections.height:,} visible craters "
             f"over {n.height:,} frames, peak {peak} per frame; field of view "

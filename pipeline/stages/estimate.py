@@ -12,6 +12,7 @@ from pipeline.core.estimation.estimators import CheckOptions, RobustOptions
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
+from pipeline.io.tables import reduced
 from pipeline.ops.estimate import EstimateOptions, UsedCraters, estimate_all
 from pipeline.viz.draw.estimate import record_estimate
 
@@ -45,7 +46,7 @@ def run(ctx: StageContext) -> StageResult:
         m = estimates.filter(pl.col("method") == method)
         ok = m.filter(pl.col("status") == "ok")
         lines.append(f"{method}: {ok.height:,} of {m.height:,} frames ok, median "
-                     f"{ok['solve_ms'].median() or 0:.3f} ms per frame, "
+                     f"{reduced(ok['solve_ms'].median(), 0.0):.3f} ms per frame, "
                      f"{int(m['n_rejected'].sum()):,} craters rejected as outliers")
     statuses = {f"{meth}/{st}": n for meth, st, n in
                 estimates.group_by("method", "status").len().sort("method", "status").iter_rows()}

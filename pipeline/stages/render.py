@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from typing import Any
 
 import polars as pl
 
@@ -101,7 +102,8 @@ def run(ctx: StageContext) -> StageResult:
     detections = ops_render.detections_table(results, craters.crater_id)
     per_image = ops_render.images_table(results)
     recall = ops_render.recall_table(truth, detections)
-    facts = {"frames": len(results), **ops_render.headline(truth, detections, per_image)}
+    facts: dict[str, Any] = {"frames": len(results),
+                             **ops_render.headline(truth, detections, per_image)}
     if phys is not None and truth.height:
         fitted = ops_render.calibrate_detectability(truth, phys.detectability,
                                                     image_side_px=cfg.detection.image_size_px)

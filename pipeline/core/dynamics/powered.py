@@ -54,7 +54,7 @@ class Vehicle:
     isp_s: float
     max_slew_rate_rad_s: float
     attitude_time_constant_s: float
-    misalignment_rad: tuple[float, float] = (0.0, 0.0)
+    misalignment_rad: tuple[float, ...] = (0.0, 0.0)  # two angles: checked at construction
     source: str = ""
     thrust_axis_body: np.ndarray = field(init=False, repr=False, compare=False)
     thrust_axis_tuple: tuple[float, float, float] = field(init=False, repr=False, compare=False)

@@ -54,7 +54,7 @@ def moon_rotation_angle_rad(t_s: np.ndarray, rate_rad_s: float) -> np.ndarray:
     return rate_rad_s * np.asarray(t_s, dtype=float)
 
 
-def dcm_mci_from_mcmf(theta_rad: np.ndarray) -> np.ndarray:
+def dcm_mci_from_mcmf(theta_rad: np.ndarray | float) -> np.ndarray:
     """Rz(theta_m): rotation of MCMF vectors into MCI, shape (..., 3, 3) (ERRATA 2)."""
     theta = np.asarray(theta_rad, dtype=float)
     c, s = np.cos(theta), np.sin(theta)

@@ -128,6 +128,15 @@ class Gates:
     def __call__(self, dof: int) -> float | None:
         return None if self.probability is None else _threshold(self.probability, dof)
 
+    def per_measurement(self, dof: np.ndarray) -> np.ndarray | None:
+        """The gate of each of N measurements of `dof` (N,) degrees of freedom (None: no gate)."""
+        if self.probability is None:
+            return None
+        out = np.empty(dof.shape, dtype=float)
+        for d in np.unique(dof):
+            out[dof == d] = _threshold(self.probability, int(d))
+        return out
+
 
 @cache
 def _threshold(probability: float, dof: int) -> float:
@@ -272,8 +281,7 @@ class CraterModel:
         e, j, per_dof = crater_system(rec.x, m, opts)
         if e.shape[0] == 0:
             return 0.0, 0
-        keep = gate(rec.p[np.ix_(POSE, POSE)], e, j,
-                    None if not gates else np.where(per_dof == 3, gates(3), gates(2)))
+        keep = gate(rec.p[np.ix_(POSE, POSE)], e, j, gates.per_measurement(per_dof))
         rec.count(self.kind, int(keep.sum()), int((~keep).sum()))
         if not keep.any():
             return 0.0, 0

@@ -244,7 +244,9 @@ def catalogue_sigmas(noise: SensorNoise, rho_m: np.ndarray, site: np.ndarray | N
     and with apparent-size ranges the diameter's). `site` (N,) marks the site tier's craters,
     which carry the flight map's relative error instead (its common offset is not noise)."""
     cat = noise.catalogue
-    h, v, d = cat.horizontal_m, cat.height_m, cat.diameter_share
+    h: np.ndarray | float = cat.horizontal_m
+    v: np.ndarray | float = cat.height_m
+    d: np.ndarray | float = cat.diameter_share
     if site is not None and np.any(site):
         h = np.where(site, cat.site_relative_m, h)
         v = np.where(site, cat.site_relative_m, v)

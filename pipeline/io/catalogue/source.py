@@ -177,7 +177,11 @@ def _parse_csv(path: Path, data: bytes) -> SourceTable:
         raise
     except Exception:  # polars splits records differently (stray quotes): the csv module decides
         rows, slow_lines, texts = _records_slow(path, data.decode())
-        raw = texts[1:].__getitem__
+        record_texts = texts[1:]
+
+        def raw(i: int) -> str:
+            return record_texts[i]
+
         header = rows[0] if rows else []
         n_header = len(header)
         record_lines = np.asarray(slow_lines[1:], dtype=np.int64)

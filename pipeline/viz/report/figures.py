@@ -9,6 +9,7 @@ import numpy as np
 import polars as pl
 from matplotlib.figure import Figure
 
+from pipeline.io.tables import reduced
 from pipeline.studies import Study
 from pipeline.viz.report.base import STUDY, _finish_stack, _hex, _save, robust_limit
 from pipeline.vocab import (
@@ -39,7 +40,7 @@ def fig_counts(frames_table: pl.DataFrame, path: Path, title: str, study: Study 
         ax.text(a, ref.value * 1.03, ref.label, color="0.4", fontsize=8, va="bottom")
     ax.set_xlabel("time since apoapsis (s)")
     ax.set_ylabel("craters per frame")
-    top = max([float(frames_table["n_visible"].max() or 0)] + [r.value for r in study.count_refs])
+    top = max([reduced(frames_table["n_visible"].max(), 0.0)] + [r.value for r in study.count_refs])
     ax.set_ylim(0, 1.12 * top if top > 0 else 1)
     alt = ax.twinx()
     alt.plot(t, frames_table["altitude_km"].to_numpy(), color="#3366cc", lw=1.2, label="altitude")

@@ -9,6 +9,7 @@ import numpy as np
 import polars as pl
 from matplotlib.figure import Figure
 
+from pipeline.io.tables import reduced
 from pipeline.viz.report.base import _finish_stack
 
 PHASE_COLORS = {"coast": "#999999", "braking": "#d62728", "approach": "#ff7f0e",
@@ -40,9 +41,10 @@ def landing_section(touchdown: pl.DataFrame, guidance: pl.DataFrame) -> str:
               f"kg, left {t['propellant_left_kg']:.1f} kg.", ""]
     rows = []
     for (phase,), g in guidance.group_by("phase", maintain_order=True):
-        rows.append(f"| {phase} | {g['t_s'].min():.1f} | {g['t_s'].max():.1f} | "
-                    f"{g['altitude_m'].max():.0f} | {g['altitude_m'].min():.0f} | "
-                    f"{g['throttle'].mean():.2f} |")
+        times, alt = g["t_s"], g["altitude_m"]
+        rows.append(f"| {phase} | {reduced(times.min()):.1f} | {reduced(times.max()):.1f} | "
+                    f"{reduced(alt.max()):.0f} | {reduced(alt.min()):.0f} | "
+                    f"{reduced(g['throttle'].mean()):.2f} |")
     lines += ["| phase | from (s) | to (s) | altitude from (m) | to (m) | mean throttle |",
               "|---|---:|---:|---:|---:|---:|", *rows, "", "![descent](fig_flight.png)", ""]
     return "\n".join(lines) + "\n"

@@ -10,6 +10,7 @@ import polars as pl
 
 from pipeline.config import RunConfig
 from pipeline.io.rrd import visuals_enabled
+from pipeline.io.tables import reduced
 from pipeline.ops.score import by_craters_used
 from pipeline.studies import Study
 from pipeline.viz.report.base import STUDY
@@ -52,7 +53,7 @@ def count_facts(frames_table: pl.DataFrame, study: Study = STUDY) -> str:
     lines.append(f"- peak visible craters: {n[peak]} at t = {t[peak]:.0f} s, altitude "
                  f"{frames_table['altitude_km'][peak]:.1f} km")
     lines.append(f"- visible craters at the last frame (t = {t[-1]:.0f} s): {n[-1]}; mean used "
-                 f"per frame {frames_table['n_used'].mean():.1f}")
+                 f"per frame {reduced(frames_table['n_used'].mean()):.1f}")
     return "\n".join(lines) + "\n"
 
 

@@ -76,7 +76,8 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
     dcm = rotations.dcm_from_q(quats(trajectory, "q_mci_from_body"))
     corner_rays = model.fov.border_rays_body(1)
     border_rays = model.fov.border_rays_body(OUTLINE_SAMPLES_PER_EDGE)
-    frustum, outline = [], []
+    frustum: list[np.ndarray] = []
+    outline: list[np.ndarray] = []
     for r, d in zip(r_mci, dcm, strict=True):
         corners = camera.surface_points(r, corner_rays @ d.T, model.moon_radius_m)
         frustum.extend(np.stack([np.broadcast_to(r, corners.shape), corners], 1))

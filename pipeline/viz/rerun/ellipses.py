@@ -175,7 +175,7 @@ def log_rim_ellipses(rec: rr.RecordingStream, detections, frames_table,
             radii=rr.components.Radius.ui_points(
                 MEASURED_ELLIPSE_RADIUS_UI if measured else TRUE_ELLIPSE_RADIUS_UI),
             draw_order=ELLIPSE_DRAW_ORDER[kind],
-            **({} if measured else {"colors": [TRUE_ELLIPSE_COLOR]})), static=True)
+            colors=None if measured else [TRUE_ELLIPSE_COLOR]), static=True)
         send_strips_2d(rec, entity, frame, t_s,
                        np.bincount(frame_of[ok], minlength=frame.size), points, offsets,
                        palette[state[ok]] if measured else None)

@@ -56,7 +56,8 @@ def _ellipsoid_axes(cov_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return 3.0 * np.sqrt(np.maximum(eigval, 0.0)), Rotation.from_matrix(eigvec).as_quat()
 
 
-STATUS_MARKERS = ("circle", "cross", "diamond", "square", "up", "down")  # per method
+STATUS_MARKERS: tuple[rr.components.MarkerShapeLike, ...] = (  # per method
+    "circle", "cross", "diamond", "square", "up", "down")
 
 
 def log_estimation(rec: rr.RecordingStream, estimates, detections, trajectory) -> None:

@@ -3,7 +3,7 @@ one, `sim_time` always."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,7 +64,7 @@ def frames_at(t_s: np.ndarray, frames=None) -> np.ndarray:
 
 
 def send_on_grid(rec: rr.RecordingStream, entity: str, grid: TimeGrid,
-                 columns: Callable[[np.ndarray], list]) -> None:
+                 columns: Callable[[np.ndarray], Iterable[rr.ComponentColumn]]) -> None:
     """Columnar send of a table's rows on their timelines: `columns(mask)` gives the component
     columns of the selected rows."""
     for indexes, mask in grid.parts():

@@ -193,10 +193,11 @@ NIS_PER_DOF_MAX = 6.0  # above the 1-dof band's upper point (5.02)
 def _error_views(entity: str, label: str, axes: str, around_cursor: bool) -> rrb.Vertical:
     """The three axes' error plots of one quantity, stacked: around the time cursor, or over
     the whole run."""
-    window = {"time_ranges": _time_window(ERROR_WINDOW_S)} if around_cursor else {}
+    window = _time_window(ERROR_WINDOW_S) if around_cursor else None
     return rrb.Vertical(*[
         rrb.TimeSeriesView(origin=f"/navigation/errors/{entity}/{c}",
-                           name=f"{entity.split('_')[0]} error {axes} {c} ({label})", **window)
+                           name=f"{entity.split('_')[0]} error {axes} {c} ({label})",
+                           time_ranges=window)
         for c in "xyz"],
         name=f"{entity.split('_')[0]} error ({label})")
 

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.bench.common import result
 from pipeline.workspace import workspace
 
 LOO_DIR = Path("runs") / "detector-loo"
@@ -106,7 +107,7 @@ def _images_scenario(scratch, results: list, result) -> None:
         'extends = "images-learned"\n\n[render]\nstride = 10\n')
     scratch.cli("run", "bench-images-learned")
     store = RunStore("bench-images-learned", scratch.dir / "runs")
-    facts = store.entry("render")["info"]
+    facts = store.info("render")
     window = load_config("images").scoring.table_window
     nav = pl.read_parquet(store.path("navigation_summary.parquet")).filter(
         (pl.col("source") == "filter") & (pl.col("window") == window))
@@ -130,11 +131,9 @@ def _images_scenario(scratch, results: list, result) -> None:
 
 def bench_detector(scratch) -> list:
     """The detector group (module docstring)."""
-    from pipeline.bench import _result
-
     results: list = []
-    _speed(results, _result)
-    _rendered(results, _result)
-    _real(results, _result)
-    _images_scenario(scratch, results, _result)
+    _speed(results, result)
+    _rendered(results, result)
+    _real(results, result)
+    _images_scenario(scratch, results, result)
     return results

@@ -1,5 +1,5 @@
 """Terrain speed and memory, measured (for `just bench`): `run()` returns the results as the
-bench's records (name, value, unit, target, at_least, ok, note); `python -m pipeline.terrain_bench`
+bench's records (name, value, unit, target, at_least, ok, note); `python -m pipeline.bench.terrain`
 prints them.
 
 - build: the truth terrain of the synthetic catalogue (Robbins 2018 law, D 1-300 km, 1.3 M

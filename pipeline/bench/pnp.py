@@ -207,7 +207,7 @@ def format_comparison(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":  # python -m pipeline.pnp_bench [n_frames] [n_craters]
+if __name__ == "__main__":  # python -m pipeline.bench.pnp [n_frames] [n_craters]
     import sys
 
     args = [int(a) for a in sys.argv[1:3]]
