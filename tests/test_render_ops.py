@@ -1,4 +1,5 @@
-"""Rendered frames through the pixel detector (`pipeline.ops.render`): one-to-one matching of
+"""Rendered frames through the pixel detector (`pipeline.ops.render`, its tables
+in `pipeline.ops.render_scores`): one-to-one matching of
 detections to the true rims, a rendered frame's recall and centre accuracy against the rendered
 rim crests, the recall grid's bookkeeping, and the detectability fit on synthetic flags."""
 
@@ -15,6 +16,7 @@ from pipeline.core.sensors import camera, conics, render
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.core.sensors.detection import Craters, DetectionModel, PhysicalSensor
 from pipeline.ops import render as rops
+from pipeline.ops import render_scores as scores
 
 R_MOON = 1737.4e3
 FOV = camera.FieldOfView.from_config(45.0, "corner_half_angle")
@@ -112,7 +114,7 @@ def test_render_and_detect_finds_the_rims(rendered):
     big = t.counted & (t.apparent_diam_px >= 10)
     assert big.sum() >= 10
     assert t.detected[big].mean() >= 0.8, t.detected[big].mean()
-    tab = rops.truth_table([(0, 0.0, f)], cat.crater_id)
+    tab = scores.truth_table([(0, 0.0, f)], cat.crater_id)
     assert tab.height == t.counted.sum()
     err = tab.filter(pl.col("detected"))["centre_error_px"].to_numpy()
     assert np.median(err) < 0.5, np.median(err)
@@ -126,14 +128,14 @@ def test_render_and_detect_finds_the_rims(rendered):
     hit = d.truth >= 0
     np.testing.assert_array_equal(t.matched_det[d.truth[hit]], np.flatnonzero(hit))
     assert t.detected.sum() == hit.sum()
-    dets = rops.detections_table([(0, 0.0, f)], cat.crater_id)
+    dets = scores.detections_table([(0, 0.0, f)], cat.crater_id)
     assert dets.height == len(d)
     np.testing.assert_array_equal((dets["crater_id"] < 0).to_numpy(), ~hit)
     assert dets["truth_counted"].sum() == tab["detected"].sum()
     # the model's prediction: lit at 55 deg, so p is the size term times p_max
     assert np.all(t.p_model[t.apparent_diam_px >= 20] == pytest.approx(0.95))
     np.testing.assert_allclose(t.incidence_deg, 55.0, atol=1.0)  # 28 km footprint
-    img = rops.images_table([(0, 0.0, f)])
+    img = scores.images_table([(0, 0.0, f)])
     assert img["n_false"][0] == (~hit).sum() and img["n_truth"][0] == t.counted.sum()
     assert f.render_ms > 0 and f.detect_ms > 0
 
@@ -149,13 +151,13 @@ def test_a_false_detection_is_reported_as_such(rendered):
     fake = rops.ImageDetections(centre, a, np.r_[d.semi_minor_px, 8.0], np.r_[d.angle_rad, 0.0],
                                 np.r_[d.confidence, 0.5], det_truth)
     g = replace(f, detections=fake, truth=replace(t, matched_det=matched))
-    dets = rops.detections_table([(3, 1.5, g)], cat.crater_id)
+    dets = scores.detections_table([(3, 1.5, g)], cat.crater_id)
     assert dets["crater_id"][-1] == -1 and not dets["truth_counted"][-1]
     assert np.isnan(dets["true_semi_major_px"][-1])
-    img = rops.images_table([(3, 1.5, g)])
+    img = scores.images_table([(3, 1.5, g)])
     assert img["n_false"][0] == (d.truth < 0).sum() + 1
     assert img["precision"][0] == pytest.approx(1 - img["n_false"][0] / len(fake))
-    recall = rops.recall_table(rops.truth_table([(3, 1.5, g)], cat.crater_id), dets)
+    recall = scores.recall_table(scores.truth_table([(3, 1.5, g)], cat.crater_id), dets)
     false_d = 2 * dets.filter(pl.col("crater_id") < 0)["semi_major_px"].to_numpy()
     n_15_20 = int(np.sum((false_d >= 15) & (false_d < 20)))
     assert n_15_20 >= 1  # the fake one, 18 px
@@ -179,7 +181,7 @@ def synthetic_truth(n: int, d: sensor.Detectability, seed: int, inc_deg=(0.0, 90
 
 def test_recall_table_bins_add_up():
     truth = synthetic_truth(3000, sensor.Detectability(), 1, (0.0, 100.0))
-    tab = rops.recall_table(truth)
+    tab = scores.recall_table(truth)
     assert tab.height == 7 * 5
     counted = truth.filter((pl.col("apparent_diam_px") >= 5) & (pl.col("incidence_deg") < 90))
     assert tab["n_true"].sum() == counted.height
@@ -199,7 +201,7 @@ def test_headline_counts():
     truth = synthetic_truth(2000, sensor.Detectability(), 2)
     dets = pl.DataFrame({"crater_id": [1, 2, -1, 3]})
     images = pl.DataFrame({"render_ms": [10.0, 30.0], "detect_ms": [1.0, 2.0]})
-    h = rops.headline(truth, dets, images)
+    h = scores.headline(truth, dets, images)
     sel = truth.filter((pl.col("apparent_diam_px") >= 10)
                        & pl.col("incidence_deg").is_between(30, 80, closed="left"))
     assert h["recall_10px_inc30_80"] == pytest.approx(sel["detected"].mean())
@@ -211,7 +213,7 @@ def test_calibration_recovers_known_detectability():
     true = sensor.Detectability(min_diameter_px=12.0, full_diameter_px=22.0, p_max=0.9,
                                 incidence_rise_deg=(15.0, 35.0), incidence_fall_deg=(76.0, 86.0))
     truth = synthetic_truth(20000, true, 7)
-    fit = rops.calibrate_detectability(truth, sensor.Detectability(), 1024)
+    fit = scores.calibrate_detectability(truth, sensor.Detectability(), 1024)
     assert fit.min_diameter_px == pytest.approx(12.0, rel=0.1)
     assert fit.full_diameter_px == pytest.approx(22.0, rel=0.1)
     assert fit.p_max == pytest.approx(0.9, rel=0.03)
@@ -224,12 +226,12 @@ def test_calibration_keeps_unconstrained_edges():
     base = sensor.Detectability()
     true = sensor.Detectability(min_diameter_px=8.0, full_diameter_px=16.0, p_max=0.8)
     truth = synthetic_truth(5000, true, 8, (40.0, 70.0))  # no data near either band edge
-    fit = rops.calibrate_detectability(truth, base, 1024)
+    fit = scores.calibrate_detectability(truth, base, 1024)
     assert fit.incidence_rise_deg == base.incidence_rise_deg
     assert fit.incidence_fall_deg == base.incidence_fall_deg
     assert fit.min_diameter_px == pytest.approx(8.0, rel=0.15)
     assert fit.p_max == pytest.approx(0.8, rel=0.05)
-    assert rops.calibrate_detectability(truth.head(10), base) is base
+    assert scores.calibrate_detectability(truth.head(10), base) is base
 
 
 def test_scene_reaches_past_the_view_for_shadow_casters():

@@ -33,7 +33,7 @@ from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.io import ephemeris
 from pipeline.io.catalogue import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.io.images import encode_png
-from pipeline.ops import detector_error
+from pipeline.ops import detector_error, render_scores
 from pipeline.ops import render as ops_render
 from pipeline.ops.detect import model_of, true_poses
 from pipeline.ops.detectors import make_detector
@@ -98,17 +98,17 @@ def run(ctx: StageContext) -> StageResult:
                 results.append((int(frame[i]), float(t_s[i]), img))
                 pngs.append(encode_png(img.image))
                 advance()
-    truth = ops_render.truth_table(results, craters.crater_id)
-    detections = ops_render.detections_table(results, craters.crater_id)
-    per_image = ops_render.images_table(results)
-    recall = ops_render.recall_table(truth, detections)
+    truth = render_scores.truth_table(results, craters.crater_id)
+    detections = render_scores.detections_table(results, craters.crater_id)
+    per_image = render_scores.images_table(results)
+    recall = render_scores.recall_table(truth, detections)
     facts: dict[str, Any] = {"frames": len(results),
-                             **ops_render.headline(truth, detections, per_image)}
+                             **render_scores.headline(truth, detections, per_image)}
     if phys is not None and truth.height:
-        fitted = ops_render.calibrate_detectability(truth, phys.detectability,
+        fitted = render_scores.calibrate_detectability(truth, phys.detectability,
                                                     image_side_px=cfg.detection.image_size_px)
-        facts["calibrated_detectability"] = ops_render.detectability_facts(fitted)
-        facts["model_detectability"] = ops_render.detectability_facts(phys.detectability)
+        facts["calibrated_detectability"] = render_scores.detectability_facts(fitted)
+        facts["model_detectability"] = render_scores.detectability_facts(phys.detectability)
     tx.table("pixel_detections", detections)
     tx.table("rendered_craters", truth)
     tx.table("images", per_image)
@@ -146,7 +146,11 @@ STAGE = Stage(
         "sensor", "fov_deg", "fov_convention", "image_size_px", "distortion",
         "camera_mounting_deg", "detect_min_diameter_px", "catalogue_sigma_horizontal_m",
         "catalogue_sigma_height_m", "catalogue_sigma_diameter_share", "site_map_sigma_horizontal_m",
-        "site_map_sigma_height_m", "site_map_relative_sigma_m", "world_seed")),
+        "site_map_sigma_height_m", "site_map_relative_sigma_m", "world_seed",
+        # the whole detection model is built (`model_of`), its visibility and noise fields too
+        "visibility_a", "visibility_b_per_km", "visibility_diam_unit", "p_identify",
+        "max_craters", "selection", "false_match_share", "sigma_bearing", "sigma_range_m",
+        "pixel_sigma_px", "bearing", "range_source")),
            "terrain",
            "trajectory.epoch_utc", "seed"),
     inputs=("catalogue.json", "trajectory.parquet"),

@@ -27,7 +27,7 @@ def log_images(rec: rr.RecordingStream, per_image, jpegs: list[bytes], image_siz
                size_px: int, detections, truth) -> None:
     """The rendered images (JPEG, size_px a side) per rendered frame at IMAGE_ENTITY, with the
     detected ellipses matched to a true rim or to none and the true rims of 10 px or more that
-    were missed (`pipeline.ops.render`'s tables), scaled to the image's size."""
+    were missed (the tables of `pipeline.ops.render_scores`), scaled to the image's size."""
     import polars as pl
 
     if not jpegs:
