@@ -36,10 +36,10 @@ def pixel_sensing(model: DetectionModel, pixel: pl.DataFrame, frame: np.ndarray,
                   craters: CraterArrays, r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
                   sun_mcmf_m: np.ndarray) -> Sensing:
     """The crater detector's ellipses in the rendered images (the detections table of
-    `pipeline.ops.render_scores`, `pixel`) of each frame (none where no image was rendered), with
-    the truth of their match to the true rims: the world crater (the catalogue with its errors) at its
-    rendered rim crest, its bearing, range, lighting and the detection model's probability;
-    frames' truth as in `model_sensing`."""
+    `pipeline.ops.render_scores`, `pixel`) of each frame (none where no image was rendered),
+    with the truth of their match to the true rims: the world crater (the catalogue with its
+    errors) at its rendered rim crest, its bearing, range, lighting and the detection model's
+    probability; frames' truth as in `model_sensing`."""
     phys = model.physical
     assert phys is not None
     cam = phys.camera
