@@ -48,7 +48,7 @@ DETECTIONS_SCHEMA = {
 FRAMES_SCHEMA = {
     "frame": pl.Int32, "t_s": pl.Float64, "altitude_km": pl.Float64, "d_min_km": pl.Float64,
     "n_candidates": pl.Int64, "n_visible": pl.Int64, "n_identified": pl.Int64,
-    "n_used": pl.Int64, "n_false_match": pl.Int64,
+    "n_used": pl.Int64, "n_false_match": pl.Int64, "n_terrain_shadowed": pl.Int64,
     **{f"corner{j}_lat_deg": pl.Float64 for j in range(1, 5)},
     **{f"corner{j}_lon_deg": pl.Float64 for j in range(1, 5)},
 }
