@@ -34,6 +34,10 @@ render *args:
 detect *args:
     {{py}} detect "$@"
 
+# stage 3b: the closed loop (powered descent flown on the navigator's estimate; default scenario: landing)
+fly *args:
+    {{py}} fly "$@"
+
 # stage 4: pose estimation (the paper's method and the joint ML)
 estimate *args:
     {{py}} estimate "$@"

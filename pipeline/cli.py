@@ -93,6 +93,13 @@ def detect(scenario: Scenario = "default", run_id: RunId = None, force: Force = 
 
 
 @app.command()
+def fly(scenario: Scenario = "landing", run_id: RunId = None, force: Force = False) -> None:
+    """Fly the closed loop: powered descent with guidance on the navigator's estimate to the
+    site (the open-loop tables, guidance.parquet, touchdown.parquet, fly.rrd)."""
+    _stage("fly", scenario, run_id, force)
+
+
+@app.command()
 def estimate(scenario: Scenario = "default", run_id: RunId = None, force: Force = False) -> None:
     """Estimate position and attitude per frame (estimates.parquet, estimation.rrd)."""
     _stage("estimate", scenario, run_id, force)
