@@ -1,5 +1,5 @@
 """Crater detection on rendered images: the Sun's image direction, single craters recovered
-against their projected rim crests (`conics.rim_conics` of `render.rim_crests`), and recall and
+against their projected rim crests (`conics.rim_conics` of `height_map.rim_crests`), and recall and
 precision on a frame with many craters."""
 
 from __future__ import annotations
@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from pipeline.core.sensors import camera, conics, render
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.sensors import camera, conics, exposure, height_map, render
 from pipeline.core.vision.detectors import classical as crater_detect
 
-R_MOON = render.MOON_RADIUS_M
+R_MOON = MOON_RADIUS_M
 FOV = camera.FieldOfView.from_config(45.0, "corner_half_angle")
-SENSOR = render.SensorOptions(blur_sigma_px=0.5)  # 8 bits, shot and read noise
+SENSOR = exposure.SensorOptions(blur_sigma_px=0.5)  # 8 bits, shot and read noise
 
 
 def nadir_pose(alt_m: float, yaw_deg: float = 0.0):
@@ -38,7 +39,7 @@ def ground(up, east, north, e_m, n_m):
 
 
 def truth_ellipses(c, d, r_cam, dcm, cam):
-    crest, radius = render.rim_crests(c, d)
+    crest, radius = height_map.rim_crests(c, d)
     return conics.ellipse_from_conic(conics.rim_conics(crest, radius, r_cam, dcm, cam.k))
 
 
