@@ -16,9 +16,8 @@ import pytest
 
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors import conics, height_map, render
-from pipeline.core.sensors.camera import PixelCamera
+from pipeline.core.sensors.camera import PixelCamera, sun_direction_image
 from pipeline.core.sensors.scenes import SceneOptions
-from pipeline.core.vision.detectors.classical import sun_direction_image
 from pipeline.core.vision.sun_direction import sun_from_rims
 from pipeline.ops import detector_eval
 from pipeline.ops.detectors import DEFAULT_MODEL, MODELS, make_detector

@@ -230,7 +230,7 @@ def render_and_detect(model: DetectionModel, craters: CraterArrays, world: senso
                                 terrain=opts.terrain, sensor=opts.sensor, degradation=age,
                                 surface=opts.surface)
     t1 = time.perf_counter()
-    sun_img = crater_detect.sun_direction_image(cam, r, dcm_cam, u_sun, radius_m=radius)
+    sun_img = camera.sun_direction_image(cam, r, dcm_cam, u_sun, radius_m=radius)
     if not np.all(np.isfinite(sun_img)):
         det = Detections.empty()
     elif opts.detector is None:

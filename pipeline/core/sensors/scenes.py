@@ -26,8 +26,7 @@ from scipy import ndimage
 from pipeline.core.body import illumination
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors import conics, exposure, height_map, render
-from pipeline.core.sensors.camera import PixelCamera
-from pipeline.core.vision.detectors.classical import sun_direction_image
+from pipeline.core.sensors.camera import PixelCamera, sun_direction_image
 
 SCENE_TAG = 0x5CE7E  # the scenes' streams within a seed
 
