@@ -15,10 +15,9 @@ import numpy as np
 import pytest
 
 from pipeline.core.math.constants import MOON_RADIUS_M
-from pipeline.core.sensors import conics, render
-from pipeline.core.sensors.camera import PixelCamera
+from pipeline.core.sensors import conics, height_map, render
+from pipeline.core.sensors.camera import PixelCamera, sun_direction_image
 from pipeline.core.sensors.scenes import SceneOptions
-from pipeline.core.vision.detectors.classical import sun_direction_image
 from pipeline.core.vision.sun_direction import sun_from_rims
 from pipeline.ops import detector_eval
 from pipeline.ops.detectors import DEFAULT_MODEL, MODELS, make_detector
@@ -51,7 +50,7 @@ def _single_crater(diam_px: float, age: float, elev_deg: float, az_deg: float, s
     tau = np.array([age])
     frame = render.render_frame(cam, r_cam, dcm, u_sun, c, d, np.random.default_rng(seed),
                                 degradation=tau)
-    crest, rr = render.rim_crests(c, d, degradation=tau)
+    crest, rr = height_map.rim_crests(c, d, degradation=tau)
     ell = conics.ellipse_from_conic(conics.rim_conics(crest, rr, r_cam, dcm, cam.k))
     return frame.image, sun_direction_image(cam, r_cam, dcm, u_sun), ell
 

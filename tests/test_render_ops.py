@@ -12,7 +12,7 @@ import polars as pl
 import pytest
 
 from pipeline.core.math import tiling
-from pipeline.core.sensors import camera, conics, render
+from pipeline.core.sensors import camera, conics, exposure, height_map
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.core.sensors.detection import Craters, DetectionModel, PhysicalSensor
 from pipeline.ops import render as rops
@@ -73,8 +73,8 @@ def rendered():
     cam, r_cam, dcm, sun, cat = scene()
     world = sensor.world_craters(cat.r_mcmf_m, cat.diam_km * 1e3, cat.crater_id,
                                  sensor.CatalogueErrors(0.0, 0.0, 0.0), 0)
-    opts = rops.RenderOptions(terrain=render.TerrainOptions(threads=1),
-                              sensor=render.SensorOptions(blur_sigma_px=0.5))
+    opts = rops.RenderOptions(terrain=height_map.TerrainOptions(threads=1),
+                              sensor=exposure.SensorOptions(blur_sigma_px=0.5))
     f = rops.render_and_detect(model(cam), cat, world, r_cam, dcm, sun,
                                np.random.default_rng(5), opts)
     return f, cat

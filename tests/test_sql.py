@@ -21,7 +21,8 @@ from typer.testing import CliRunner
 
 from pipeline.cli import app
 from pipeline.io import sqlshell
-from pipeline.io.sqlshell import SqlError, SqlRefused, SqlSessionError, SqlTimeout
+from pipeline.io.sql_guard import SqlError, SqlRefused, SqlTimeout
+from pipeline.io.sqlshell import SqlSessionError
 from pipeline.io.store import RunStore
 from pipeline.workspace import Workspace, workspace
 

@@ -2,12 +2,12 @@
 
 Two layers keep a session read-only:
 
-1. Only reading statements run: SELECT (with DESCRIBE, SHOW, SUMMARIZE, FROM ...), CALL, EXPLAIN
-   of those, and read-only PRAGMAs. Every other statement (ATTACH, DETACH, COPY, EXPORT, INSTALL,
-   LOAD, SET, RESET, USE, CREATE, DROP, INSERT, UPDATE, DELETE, ...) is refused before DuckDB sees
-   it. This layer is needed: DuckDB keeps the attached catalogue's own paths (the file and its
-   .wal) in `allowed_paths`, so `COPY ... TO '<catalogue>.wal'` or `USE memory; DETACH craters;
-   ATTACH '<catalogue>' (READ_WRITE)` would get through layer 2 alone.
+1. Only reading statements run (`pipeline.io.sql_guard`): SELECT (with DESCRIBE, SHOW,
+   SUMMARIZE, FROM ...), CALL, EXPLAIN of those, and read-only PRAGMAs; every other statement is
+   refused before DuckDB sees it. This layer is needed: DuckDB keeps the attached catalogue's own
+   paths (the file and its .wal) in `allowed_paths`, so `COPY ... TO '<catalogue>.wal'` or
+   `USE memory; DETACH craters; ATTACH '<catalogue>' (READ_WRITE)` would get through layer 2
+   alone.
 2. The session: an in-memory DuckDB with no temp directory, the catalogue attached READ_ONLY as
    `craters` (the default database, so it cannot be detached) and the run's Parquet tables
    registered as lazy Arrow datasets (temporary views, found first by name); then
@@ -18,10 +18,7 @@ Two layers keep a session read-only:
 
 from __future__ import annotations
 
-import csv
-import io
 import json
-import re
 import sys
 import threading
 from dataclasses import dataclass, field
@@ -34,40 +31,29 @@ import pyarrow.dataset as pads
 
 from pipeline.config import validate_run_id
 from pipeline.errors import ConfigError, PipelineError
+from pipeline.io.sql_guard import (
+    SqlError,
+    SqlTimeout,
+    check_query,
+    one_line,
+    translate_error,
+)
+from pipeline.io.sql_print import FORMATS, Result, render
 from pipeline.workspace import Workspace, workspace
 
 DEFAULT_DB = "catalogue/craters.duckdb"
 CATALOGUE_ALIAS = "craters"
 CAMPAIGN_ALIAS = "campaign"  # `--campaign NAME`: runs/NAME/campaign.duckdb, tables campaign.<t>
-FORMATS = ("table", "csv", "markdown")
 
-READ_ONLY_PRAGMAS = frozenset({
-    "table_info", "show", "show_tables", "show_tables_expanded", "show_databases",
-    "database_list", "database_size", "storage_info", "metadata_info", "version", "platform",
-    "user_agent", "functions", "collations"})
 LOCKDOWN = ("SET enable_external_access = false", "SET autoinstall_known_extensions = false",
             "SET autoload_known_extensions = false", "SET lock_configuration = true")
-READ_ONLY_NOTE = ("`just sql` is read-only: SELECT, DESCRIBE, SHOW, SUMMARIZE, EXPLAIN, CALL and "
-                  "read-only PRAGMAs over the catalogue and the run's tables")
-
-
-class SqlError(PipelineError):
-    """A query failed: syntax error, unknown table or column, a runtime error."""
-
-
-class SqlRefused(SqlError):
-    """A statement would write, or reach outside the catalogue and the run's tables."""
-
-
-class SqlTimeout(SqlError):
-    """A query ran longer than its timeout and was interrupted."""
 
 
 class SqlSessionError(PipelineError):
     """The session cannot open: bad --run, missing or locked catalogue, unreadable run table."""
 
 
-# --- the session ---------------------------------------------------------------------------------
+# --- the session -------------------------------------------------------------------------------
 
 
 @dataclass
@@ -122,7 +108,7 @@ def run_catalogue(run_dir: Path, ws: Workspace) -> Path:
         db = json.loads(path.read_text())["catalogue"]["db_path"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise SqlSessionError(f"{path}: no catalogue.db_path ({type(exc).__name__}: "
-                              f"{_one_line(str(exc))})") from None
+                              f"{one_line(str(exc))})") from None
     if not isinstance(db, str) or not db:
         raise SqlSessionError(f"{path}: catalogue.db_path is not a path: {db!r}")
     return ws.resolve(db)
@@ -171,7 +157,7 @@ def open_session(run: str | None = None, db: str | Path | None = None,
                 con.register(name, pads.dataset(str(path), format="parquet"))
             except (OSError, pa.ArrowException) as exc:
                 raise SqlSessionError(f"run {run!r}: table {name!r} unreadable ({path}: "
-                                      f"{_one_line(str(exc))})") from None
+                                      f"{one_line(str(exc))})") from None
         for statement in LOCKDOWN:
             con.execute(statement)
     except BaseException:
@@ -185,7 +171,7 @@ def _attach(con: duckdb.DuckDBPyConnection, catalogue: Path, alias: str = CATALO
     try:
         con.execute(f"ATTACH {_literal(str(catalogue))} AS {alias} (READ_ONLY)")
     except duckdb.Error as exc:
-        text = _one_line(str(exc))
+        text = one_line(str(exc))
         if "Could not set lock" in text or "file handle conflict" in text:
             raise SqlSessionError(f"{catalogue}: the catalogue is locked by another process (an "
                                   "ingest writing it?); try again when it has finished") from None
@@ -194,88 +180,7 @@ def _attach(con: duckdb.DuckDBPyConnection, catalogue: Path, alias: str = CATALO
         raise SqlSessionError(f"{catalogue}: cannot open the catalogue ({text})") from None
 
 
-# --- checking statements -------------------------------------------------------------------------
-
-_EXPLAIN = re.compile(r"\s*EXPLAIN\b\s*(?:ANALY[SZ]E\b\s*)?", re.IGNORECASE)
-_OPTIONS = re.compile(r"\s*\((?:[^()']|'[^']*')*\)\s*")
-_PRAGMA = re.compile(r"\s*PRAGMA\s+\"?([A-Za-z_][A-Za-z0-9_]*)", re.IGNORECASE)
-_KEYWORD = re.compile(r"[A-Za-z_]+")
-
-
-def check_query(query: str) -> list[str]:
-    """The statements of `query`, each a reading one; else SqlRefused (or SqlError if it does
-    not parse)."""
-    statements = _parse(query)
-    if not statements:
-        raise SqlError("no SQL statement in the query")
-    for statement in statements:
-        _check(statement)
-    return [s.query for s in statements]
-
-
-def _parse(query: str) -> list[duckdb.Statement]:
-    try:
-        return duckdb.extract_statements(query)
-    except duckdb.ParserException as exc:
-        raise SqlError(f"SQL syntax error: {_duck_message(exc)}") from None
-    except (duckdb.Error, ValueError) as exc:  # a statement type the Python API does not know
-        raise SqlRefused(f"refused: {_keyword(query)} ({_one_line(str(exc))}); "
-                         f"{READ_ONLY_NOTE}") from None
-
-
-def _check(statement: duckdb.Statement) -> None:
-    kind = statement.type
-    if kind in (duckdb.StatementType.SELECT, duckdb.StatementType.CALL):
-        return
-    if kind == duckdb.StatementType.PRAGMA:
-        m = _PRAGMA.match(statement.query)
-        if m and m.group(1).lower() in READ_ONLY_PRAGMAS:
-            return
-        name = m.group(1) if m else "?"
-        raise SqlRefused(f"refused: PRAGMA {name}; {READ_ONLY_NOTE} "
-                         f"({', '.join(sorted(READ_ONLY_PRAGMAS))})")
-    if kind == duckdb.StatementType.EXPLAIN and _explained_reads(statement.query):
-        return
-    raise SqlRefused(f"refused: {_keyword(statement.query)} statement; {READ_ONLY_NOTE}")
-
-
-def _explained_reads(text: str) -> bool:
-    """True when the statement an EXPLAIN [ANALYZE] [(options)] runs is a reading one."""
-    m = _EXPLAIN.match(text)
-    if not m:
-        return False
-    rest = text[m.end():]
-    candidates = [rest]
-    if o := _OPTIONS.match(rest):
-        candidates.append(rest[o.end():])
-    for candidate in candidates:
-        try:
-            inner = duckdb.extract_statements(candidate)
-        except (duckdb.Error, ValueError):
-            continue
-        if len(inner) == 1:
-            try:
-                _check(inner[0])
-            except SqlRefused:
-                return False
-            return True
-    return False
-
-
-def _keyword(text: str) -> str:
-    m = _KEYWORD.search(text)
-    return m.group(0).upper() if m else "this"
-
-
 # --- running queries -----------------------------------------------------------------------------
-
-
-@dataclass
-class Result:
-    """A query's result: the column names and the rows (an Arrow table)."""
-
-    columns: list[str]
-    table: pa.Table
 
 
 def execute(session: Session, query: str, timeout_s: float = 60.0) -> Result:
@@ -304,27 +209,10 @@ def execute(session: Session, query: str, timeout_s: float = 60.0) -> Result:
             raise SqlTimeout(f"query stopped after {timeout_s:g} s (--timeout-s)") from None
         raise SqlError("query interrupted") from None
     except duckdb.Error as exc:
-        raise _translate(exc) from None
+        raise translate_error(exc) from None
     finally:
         timer.cancel()
     return Result(columns, table)
-
-
-def _translate(exc: duckdb.Error) -> SqlError:
-    """A DuckDB error as one clear line (refusals of the locked-down engine say so)."""
-    text = _duck_message(exc)
-    if isinstance(exc, duckdb.PermissionException):
-        return SqlRefused(f"refused: {text}; `just sql` reads only the catalogue and the run's "
-                          "tables (no files, extensions or network)")
-    if "configuration has been locked" in text:
-        return SqlRefused(f"refused: {text}; settings are locked in `just sql`")
-    if "read-only mode" in text:
-        return SqlRefused(f"refused: {text}; the catalogue is opened read-only")
-    if isinstance(exc, duckdb.ParserException):
-        return SqlError(f"SQL syntax error: {text}")
-    if isinstance(exc, duckdb.CatalogException) and "does not exist" in text:
-        return SqlError(f"SQL error: {text} (`just sql` with no query lists the tables)")
-    return SqlError(f"SQL error: {text}")
 
 
 def list_tables(session: Session) -> Result:
@@ -354,112 +242,6 @@ def list_tables(session: Session) -> Result:
                       "rows": pa.array(counts, pa.int64()),
                       "columns": pa.array(columns, pa.string())})
     return Result(table.column_names, table)
-
-
-# --- printing ------------------------------------------------------------------------------------
-
-
-def render(result: Result, fmt: str, out: TextIO, terminal: bool, max_rows: int,
-           title: str | None = None) -> None:
-    """Print `result` as a table (at most `max_rows` rows on a terminal), CSV or Markdown."""
-    if fmt == "csv":
-        out.write(to_csv(result))
-    elif fmt == "markdown":
-        out.write(to_markdown(result))
-    else:
-        _print_table(result, out, terminal, max_rows, title)
-
-
-def to_csv(result: Result) -> str:
-    """CSV: a header line, then every row; NULL is empty, numbers as they are (lossless)."""
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(result.columns)
-    for row in _rows(result.table):
-        writer.writerow(["" if v is None else _csv_value(v) for v in row])
-    return buf.getvalue()
-
-
-def to_markdown(result: Result) -> str:
-    """A Markdown table of every row; numeric columns right-aligned."""
-    def cell(text: str) -> str:
-        return text.replace("|", "\\|").replace("\r\n", " ").replace("\n", " ")
-
-    numeric = [_is_numeric(t) for t in result.table.schema.types]
-    lines = ["| " + " | ".join(cell(c) for c in result.columns) + " |",
-             "| " + " | ".join("---:" if r else "---" for r in numeric) + " |"]
-    lines += ["| " + " | ".join(cell(_fmt(v)) for v in row) + " |"
-              for row in _rows(result.table)]
-    return "\n".join(lines) + "\n"
-
-
-def _print_table(result: Result, out: TextIO, terminal: bool, max_rows: int,
-                 title: str | None) -> None:
-    numeric = [_is_numeric(t) for t in result.table.schema.types]
-    if not terminal:  # every row, never wrapped or cut
-        out.write(box_table(result.columns, [[_fmt(v) for v in row]
-                                             for row in _rows(result.table)], numeric))
-        return
-    from rich.console import Console
-    from rich.table import Table
-
-    n = result.table.num_rows
-    shown = result.table.slice(0, max_rows)
-    table = Table(title=title)
-    for name, right in zip(result.columns, numeric, strict=True):
-        table.add_column(name, justify="right" if right else "left", overflow="fold")
-    for row in _rows(shown):
-        table.add_row(*(_fmt(v) for v in row))
-    console = Console(file=out)
-    console.print(table)
-    more = n - shown.num_rows
-    console.print(f"({n:,} rows" + (f"; {more:,} not shown: --max-rows {n} to see all)"
-                                     if more else ")"))
-
-
-def box_table(columns: list[str], rows: list[list[str]], right: list[bool]) -> str:
-    """A plain box-drawn table (the terminal's look, without colour or wrapping)."""
-    cells = [[c.replace("\n", " ") for c in row] for row in [columns, *rows]]
-    widths = [max(len(row[i]) for row in cells) for i in range(len(columns))]
-
-    def line(row: list[str], bar: str) -> str:
-        parts = [c.rjust(w) if r else c.ljust(w)
-                 for c, w, r in zip(row, widths, right, strict=True)]
-        return bar + bar.join(f" {p} " for p in parts) + bar
-
-    def rule(left: str, mid: str, fill: str, end: str) -> str:
-        return left + mid.join(fill * (w + 2) for w in widths) + end
-
-    lines = [rule("┏", "┳", "━", "┓"), line(cells[0], "┃"),
-             rule("┡", "╇", "━", "┩"), *(line(row, "│") for row in cells[1:]),
-             rule("└", "┴", "─", "┘")]
-    return "\n".join(lines) + "\n"
-
-
-def _rows(table: pa.Table):
-    columns = [c.to_pylist() for c in table.columns]
-    return zip(*columns, strict=True) if columns else iter(())
-
-
-def _fmt(value: object) -> str:
-    """A value for people: floats to 10 significant digits, NULL spelled out."""
-    if value is None:
-        return "NULL"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, float):
-        return f"{value:.10g}"
-    return str(value)
-
-
-def _csv_value(value: object) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    return repr(value) if isinstance(value, float) else str(value)
-
-
-def _is_numeric(t: pa.DataType) -> bool:
-    return pa.types.is_integer(t) or pa.types.is_floating(t) or pa.types.is_decimal(t)
 
 
 # --- the command ---------------------------------------------------------------------------------
@@ -503,17 +285,3 @@ def _literal(text: str) -> str:
 def _ident(text: str) -> str:
     """A quoted SQL identifier."""
     return '"' + text.replace('"', '""') + '"'
-
-
-def _one_line(text: str) -> str:
-    return " ".join(text.split())
-
-
-def _duck_message(exc: Exception) -> str:
-    """A DuckDB message on one line, without its `LINE 1: ... ^` pointer."""
-    lines = []
-    for line in str(exc).splitlines():
-        if line.startswith("LINE "):
-            break
-        lines.append(line)
-    return _one_line(" ".join(lines)) or _one_line(str(exc))

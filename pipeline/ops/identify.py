@@ -15,7 +15,7 @@ from pipeline.core.body import illumination
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.math.streams import stream
 from pipeline.core.navigation.navigator import FrameResult, Tracker, identify_frames
-from pipeline.core.sensors import camera, conics, render
+from pipeline.core.sensors import camera, conics, height_map
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.core.sensors.detection import (
     CraterArrays,
@@ -46,7 +46,7 @@ def pixel_sensing(model: DetectionModel, pixel: pl.DataFrame, frame: np.ndarray,
     world = sensor.world_craters(craters.r_mcmf_m, craters.diam_km * 1e3, craters.crater_id,
                                  phys.catalogue_errors, phys.world_seed)
     # the truth of a detection is the rim crest the images show (the world's craters' terrain)
-    crest_m, _ = render.rim_crests(world.r_mcmf_m, world.diam_m)
+    crest_m, _ = height_map.rim_crests(world.r_mcmf_m, world.diam_m)
     pixel = pixel.sort("frame", "det_index")
     at = np.searchsorted(pixel["frame"].to_numpy(), np.stack([frame, frame + 1]))
     order = np.argsort(craters.crater_id)
@@ -102,10 +102,10 @@ def rim_crests(craters: CraterArrays) -> CraterArrays:
     """The catalogue as a navigator of rendered images holds it: each crater at the centre of
     its rim crest, where the images show the rim, from the catalogue's craters' terrain (Pike's
     fresh-crater shapes: the rim height, and the neighbours' bowls and ejecta under it,
-    `pipeline.core.sensors.render.rim_crests`): the catalogue with elevations from its digital
+    `pipeline.core.sensors.height_map.rim_crests`): the catalogue with elevations from its digital
     elevation
     model, as a flight catalogue carries them. The world differs by the catalogue's errors."""
-    c_m, _ = render.rim_crests(craters.r_mcmf_m, craters.diam_km * 1e3)
+    c_m, _ = height_map.rim_crests(craters.r_mcmf_m, craters.diam_km * 1e3)
     return Craters(craters.crater_id, craters.diam_km, c_m, craters.index)
 
 

@@ -3,7 +3,7 @@
 Per frame (`render_and_detect`): the world craters that can shape the view are rendered
 (`core.render.render_frame`), the image goes through the classical detector
 (`core.crater_detect.detect_craters`), and the detections are matched one-to-one to the truth:
-the rendered rim crests (`render.rim_crests`: rim height plus the other craters' terrain) imaged
+the rendered rim crests (`height_map.rim_crests`: rim height plus the other craters' terrain) imaged
 as ellipses (`conics.rim_conics`, `conics.ellipse_from_conic`). Each true rim also gets the solar
 incidence and emission at the crater and the abstract sensor's detection probability
 (`sensor.detection_probability` of the model's `Detectability`), so the measured recall can be
@@ -36,11 +36,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from pipeline.core.body import illumination
+from pipeline.core.body import crater_shape, illumination
 from pipeline.core.body.relief import rim_crests
 from pipeline.core.body.surface import Surface
 from pipeline.core.math import tiling
-from pipeline.core.sensors import camera, conics, render
+from pipeline.core.sensors import camera, conics, exposure, height_map, render
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.core.sensors.detection import CraterArrays, DetectionModel
 from pipeline.core.vision.detectors import Detections, Detector
@@ -54,8 +54,8 @@ class RenderOptions:
     relative semi-major difference), the smallest true rim counted (px), and the share by which
     the coverage cap is widened before the crater-size and shadow margins."""
 
-    terrain: render.TerrainOptions = field(default_factory=render.TerrainOptions)
-    sensor: render.SensorOptions = field(default_factory=render.SensorOptions)
+    terrain: height_map.TerrainOptions = field(default_factory=height_map.TerrainOptions)
+    sensor: exposure.SensorOptions = field(default_factory=exposure.SensorOptions)
     detect: crater_detect.DetectOptions = field(default_factory=crater_detect.DetectOptions)
     detector: Detector | None = None  # None: the classical detector with `detect`
     surface: Surface | None = None  # the world's terrain to draw (None: craters and roughness)
@@ -188,7 +188,7 @@ def scene_rows(model: DetectionModel, craters: CraterArrays, world: sensor.World
         return rows
     d_max = float(world.diam_m[rows].max())
     t = opts.terrain
-    shape = render.crater_shapes(np.array([d_max]), t.floor_fraction)
+    shape = crater_shape.crater_shapes(np.array([d_max]), t.floor_fraction)
     relief = float(shape.depth_m[0] + shape.rim_height_m[0])
     sin_elev = float(np.clip(u_sun_mcmf @ centre, -1.0, 1.0))
     tan_elev = max(sin_elev / np.sqrt(max(1.0 - sin_elev**2, 1e-12)), 0.05)
@@ -230,7 +230,7 @@ def render_and_detect(model: DetectionModel, craters: CraterArrays, world: senso
                                 terrain=opts.terrain, sensor=opts.sensor, degradation=age,
                                 surface=opts.surface)
     t1 = time.perf_counter()
-    sun_img = crater_detect.sun_direction_image(cam, r, dcm_cam, u_sun, radius_m=radius)
+    sun_img = camera.sun_direction_image(cam, r, dcm_cam, u_sun, radius_m=radius)
     if not np.all(np.isfinite(sun_img)):
         det = Detections.empty()
     elif opts.detector is None:
@@ -241,7 +241,7 @@ def render_and_detect(model: DetectionModel, craters: CraterArrays, world: senso
 
     # truth: the rendered rim crests overlapping the image; counted: wholly inside, big enough
     if opts.surface is None:
-        crest, rim_r = render.rim_crests(c, d, radius, opts.terrain, age)
+        crest, rim_r = height_map.rim_crests(c, d, radius, opts.terrain, age)
     else:  # the terrain's rim crests (`relief`): what it draws
         crest, rim_r = rim_crests(c, d, opts.surface, age), d / 2
     ell = conics.ellipse_from_conic(conics.rim_conics(crest, rim_r, r, dcm_cam, cam.k))

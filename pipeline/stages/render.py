@@ -26,7 +26,7 @@ import polars as pl
 from pipeline.config import RunConfig
 from pipeline.core.body import crater_shape
 from pipeline.core.math.streams import stream
-from pipeline.core.sensors import render
+from pipeline.core.sensors import exposure, height_map
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
@@ -50,9 +50,9 @@ def options(cfg: RunConfig) -> ops_render.RenderOptions:
         r.detector, min_diameter_px=cfg.detection.detect_min_diameter_px,
         blur_sigma_px=r.blur_sigma_px)
     return ops_render.RenderOptions(detector=detector,
-        terrain=render.TerrainOptions(albedo=r.albedo,
+        terrain=height_map.TerrainOptions(albedo=r.albedo,
                                       roughness_rms_slope_deg=r.roughness_rms_slope_deg),
-        sensor=render.SensorOptions(read_noise_e=r.read_noise_e, full_well_e=r.full_well_e,
+        sensor=exposure.SensorOptions(read_noise_e=r.read_noise_e, full_well_e=r.full_well_e,
                                     bits=r.bits, blur_sigma_px=r.blur_sigma_px),
         detect=ops_render.detect_options(cfg.detection.detect_min_diameter_px, r.blur_sigma_px))
 

@@ -1,5 +1,5 @@
 """Crater detection on rendered images: the Sun's image direction, single craters recovered
-against their projected rim crests (`conics.rim_conics` of `render.rim_crests`), and recall and
+against their projected rim crests (`conics.rim_conics` of `height_map.rim_crests`), and recall and
 precision on a frame with many craters."""
 
 from __future__ import annotations
@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from pipeline.core.sensors import camera, conics, render
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.sensors import camera, conics, exposure, height_map, render
 from pipeline.core.vision.detectors import classical as crater_detect
 
-R_MOON = render.MOON_RADIUS_M
+R_MOON = MOON_RADIUS_M
 FOV = camera.FieldOfView.from_config(45.0, "corner_half_angle")
-SENSOR = render.SensorOptions(blur_sigma_px=0.5)  # 8 bits, shot and read noise
+SENSOR = exposure.SensorOptions(blur_sigma_px=0.5)  # 8 bits, shot and read noise
 
 
 def nadir_pose(alt_m: float, yaw_deg: float = 0.0):
@@ -38,7 +39,7 @@ def ground(up, east, north, e_m, n_m):
 
 
 def truth_ellipses(c, d, r_cam, dcm, cam):
-    crest, radius = render.rim_crests(c, d)
+    crest, radius = height_map.rim_crests(c, d)
     return conics.ellipse_from_conic(conics.rim_conics(crest, radius, r_cam, dcm, cam.k))
 
 
@@ -46,9 +47,9 @@ def test_sun_direction_in_the_image():
     cam = camera.PixelCamera.from_fov(FOV, 256)
     r_cam, dcm, up, east, north = nadir_pose(30e3)  # u = east, v = south
     for az, expected in [(0.0, [1.0, 0.0]), (90.0, [0.0, -1.0]), (225.0, [-0.7071, 0.7071])]:
-        d = crater_detect.sun_direction_image(cam, r_cam, dcm, sun_at(up, east, north, 60, az))
+        d = camera.sun_direction_image(cam, r_cam, dcm, sun_at(up, east, north, 60, az))
         np.testing.assert_allclose(d, expected, atol=1e-4)
-    d2 = crater_detect.sun_direction_image(cam, r_cam, dcm, sun_at(up, east, north, 60, 0.0),
+    d2 = camera.sun_direction_image(cam, r_cam, dcm, sun_at(up, east, north, 60, 0.0),
                                            np.array([[10.0, 20.0], [200.0, 100.0]]))
     assert d2.shape == (2, 2) and np.all(d2[:, 0] > 0.99)
 
@@ -66,7 +67,7 @@ def test_single_crater_rim_is_recovered(incidence_deg, azimuth_deg, diam_px, yaw
     rng = np.random.default_rng(int(diam_px))
     frame = render.render_frame(cam, r_cam, dcm, sun, c, d, rng, sensor=SENSOR)
     det = crater_detect.detect_craters(frame.image,
-                                       crater_detect.sun_direction_image(cam, r_cam, dcm, sun))
+                                       camera.sun_direction_image(cam, r_cam, dcm, sun))
     truth = truth_ellipses(c, d, r_cam, dcm, cam)
     assert len(det) == 1
     np.testing.assert_allclose(det.centre_px[0], truth.centre_px[0], atol=0.5)
@@ -106,7 +107,7 @@ def test_recall_and_precision_on_a_cratered_frame():
     c = ground(up, east, north, rng.uniform(-half, half, n), rng.uniform(-half, half, n))
     frame = render.render_frame(cam, r_cam, dcm, sun, c, d, rng, sensor=SENSOR)
     det = crater_detect.detect_craters(frame.image,
-                                       crater_detect.sun_direction_image(cam, r_cam, dcm, sun))
+                                       camera.sun_direction_image(cam, r_cam, dcm, sun))
     truth = truth_ellipses(c, d, r_cam, dcm, cam)
     d_true = 2 * np.sqrt(truth.semi_major_px * truth.semi_minor_px)
     d_det = 2 * np.sqrt(det.semi_major_px * det.semi_minor_px)

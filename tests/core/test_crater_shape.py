@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pipeline.core.body import crater_shape as cs
-from pipeline.core.sensors import render
+from pipeline.core.sensors import height_map, render
 
 
 def test_fresh_profile_analytic_values() -> None:
@@ -18,11 +18,6 @@ def test_fresh_profile_analytic_values() -> None:
     h = cs.crater_profile(rho, s.depth_m[0], s.rim_height_m[0], 0.0)
     np.testing.assert_allclose(h, [s.rim_height_m[0] - s.depth_m[0], s.rim_height_m[0], 0, 0],
                                atol=1e-9)
-
-
-def test_render_reexports_the_same_functions() -> None:
-    assert render.crater_profile is cs.crater_profile
-    assert render.crater_shapes is cs.crater_shapes
 
 
 def test_zero_age_is_the_fresh_profile() -> None:
@@ -97,13 +92,13 @@ def test_degraded_crater_renders_shallower() -> None:
     dcm = np.stack([np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, -1.0]), -up])
     sun = np.array([0.7, 0.7, 0.0])
     c, d = (MOON_RADIUS_M * up)[None], np.array([800.0])
-    terrain = render.TerrainOptions(roughness_rms_slope_deg=0.0)
+    terrain = height_map.TerrainOptions(roughness_rms_slope_deg=0.0)
     frames = [render.render_frame(cam, r_cam, dcm, sun, c, d, np.random.default_rng(0),
                                   terrain=terrain, degradation=age)
               for age in (None, np.array([0.0]), np.array([0.1]))]
     floor = [float(np.nanmin(f.height_m)) for f in frames]
     assert floor[1] == pytest.approx(floor[0], abs=1e-3 * 157)
     assert floor[2] > floor[0] + 0.25 * 157  # the bowl (157 m deep when fresh) fills in
-    crest_fresh = render.rim_crests(c, d)[0]
-    crest_old = render.rim_crests(c, d, degradation=np.array([0.1]))[0]
+    crest_fresh = height_map.rim_crests(c, d)[0]
+    crest_old = height_map.rim_crests(c, d, degradation=np.array([0.1]))[0]
     assert np.linalg.norm(crest_old) < np.linalg.norm(crest_fresh)

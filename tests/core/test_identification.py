@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from pipeline.core.vision import identification as ident
+from pipeline.core.sensors import identification as ident
 
 ALPHA = 1e-4
 SIZE = 1024

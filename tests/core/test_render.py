@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.core.sensors import camera, conics, render
+from pipeline.core.body import crater_shape
+from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.sensors import camera, conics, exposure, height_map, render
 
-R_MOON = render.MOON_RADIUS_M
+R_MOON = MOON_RADIUS_M
 FOV = camera.FieldOfView.from_config(45.0, "corner_half_angle")
-FLAT = render.TerrainOptions(roughness_rms_slope_deg=0.0, threads=1)
-CLEAN = render.SensorOptions(read_noise_e=0.0, shot_noise=False, bits=16)
+FLAT = height_map.TerrainOptions(roughness_rms_slope_deg=0.0, threads=1)
+CLEAN = exposure.SensorOptions(read_noise_e=0.0, shot_noise=False, bits=16)
 
 
 def nadir_pose(alt_m: float, yaw_deg: float = 0.0):
@@ -84,8 +86,8 @@ def test_bowl_shadow_on_the_sunward_wall_has_the_analytic_length(incidence_deg, 
     # sunward crest: at low Sun the outer flank behind the anti-sunward crest, steeper than the
     # Sun, is in shadow too)
     x = np.arange(-rad + 2 * gsd, 1.5 * rad, 0.25 * gsd)
-    shapes = render.crater_shapes(np.array([diam]))
-    h = render.crater_profile(np.abs(x) / rad, shapes.depth_m, shapes.rim_height_m,
+    shapes = crater_shape.crater_shapes(np.array([diam]))
+    h = crater_shape.crater_profile(np.abs(x) / rad, shapes.depth_m, shapes.rim_height_m,
                               shapes.floor_fraction)
     c_up = c[0] / R_MOON
     a_hat = sun - (sun @ c_up) * c_up
@@ -112,7 +114,7 @@ def test_terrain_is_imaged_where_the_distorted_camera_model_puts_it():
     c = ground(up, east, north, hit @ east + 6e3, hit @ north - 4e3)
     out = render.render_frame(cam, r_cam, dcm, sun, c[None], np.array([diam]),
                               np.random.default_rng(0), terrain=FLAT, sensor=CLEAN)
-    shapes = render.crater_shapes(np.array([diam]))
+    shapes = crater_shape.crater_shapes(np.array([diam]))
     floor = float(shapes.rim_height_m[0] - shapes.depth_m[0])
     deep = out.height_m < floor + 0.25 * shapes.depth_m[0]  # the bowl's bottom, rho < 1/2
     v, u = np.nonzero(deep)
@@ -126,13 +128,13 @@ def test_terrain_is_imaged_where_the_distorted_camera_model_puts_it():
 
 
 def test_profiles_follow_the_morphometry():
-    shapes = render.crater_shapes(np.array([1e3, 10e3, 30e3]))
+    shapes = crater_shape.crater_shapes(np.array([1e3, 10e3, 30e3]))
     np.testing.assert_allclose(shapes.depth_m[:2], [196.0, 1960.0])
     np.testing.assert_allclose(shapes.rim_height_m[:2], [36.0, 360.0])
     np.testing.assert_allclose(shapes.depth_m[2], 1044.0 * 30.0**0.301)
     np.testing.assert_allclose(shapes.floor_fraction, [0.0, 0.0, 0.4])
     rho = np.array([0.0, 0.2, 0.5, 1.0, 1.0 + 1e-9, 1.5, 2.0, 3.0])
-    h = render.crater_profile(rho, shapes.depth_m[:, None], shapes.rim_height_m[:, None],
+    h = crater_shape.crater_profile(rho, shapes.depth_m[:, None], shapes.rim_height_m[:, None],
                               shapes.floor_fraction[:, None])
     np.testing.assert_allclose(h[:, 3], shapes.rim_height_m)  # crest
     np.testing.assert_allclose(h[:, 4], shapes.rim_height_m, rtol=1e-6)  # continuous
@@ -144,12 +146,12 @@ def test_profiles_follow_the_morphometry():
 
 def test_sensor_noise_and_quantisation():
     rad = np.full((200, 200), 0.1, np.float32)
-    sensor = render.SensorOptions(if_full_well=0.2, full_well_e=10_000.0, read_noise_e=30.0,
+    sensor = exposure.SensorOptions(if_full_well=0.2, full_well_e=10_000.0, read_noise_e=30.0,
                                   bits=12)
-    _, dn, image = render.expose(rad, np.random.default_rng(3), sensor)
+    _, dn, image = exposure.expose(rad, np.random.default_rng(3), sensor)
     gain = 10_000.0 / 4095.0  # e-/DN
     assert image.dtype == np.uint16
     assert dn.mean() * gain == pytest.approx(5000.0, rel=2e-3)
     assert dn.std() * gain == pytest.approx(np.sqrt(5000.0 + 900.0), rel=0.03)
-    _, _, img8 = render.expose(rad * 10, np.random.default_rng(3), render.SensorOptions())
+    _, _, img8 = exposure.expose(rad * 10, np.random.default_rng(3), exposure.SensorOptions())
     assert img8.dtype == np.uint8 and img8.max() == 255  # saturates

@@ -9,12 +9,12 @@ import pytest
 from scipy.optimize import brentq
 
 from pipeline.core.body import tiles
+from pipeline.core.body.crater_shape import crater_shapes
 from pipeline.core.body.surface import SURFACE_OPTIONS, SURFACES, Sphere
 from pipeline.core.body.terrain import MapErrorOptions, Terrain, TerrainOptions
 from pipeline.core.body.terrain_fields import crater_relief_m
 from pipeline.core.math.constants import MOON_RADIUS_M as R
 from pipeline.core.sensors.camera import ray_sphere_distance
-from pipeline.core.sensors.render import crater_shapes
 
 FLAT = TerrainOptions(base="none", roughness_rms_slope_deg=0.0)
 EAST = np.array([0.0, 1.0, 0.0])  # at (lat 0, lon 0) the local east; up is +x

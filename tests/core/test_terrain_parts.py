@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from pipeline.core.body import tiles
+from pipeline.core.body.crater_shape import crater_shapes
 from pipeline.core.body.noise import FractalNoise
 from pipeline.core.body.terrain import MapErrorOptions, Terrain, TerrainOptions
 from pipeline.core.body.terrain_fields import BaseField, LatLonGrid, crater_relief_m
 from pipeline.core.math.constants import MOON_RADIUS_M as R
 from pipeline.core.sensors.conics import tangent_basis
-from pipeline.core.sensors.render import crater_shapes
 
 FLAT = TerrainOptions(base="none", roughness_rms_slope_deg=0.0, tile_cells=32)
 

@@ -16,7 +16,7 @@ import rerun as rr
 from conftest import run_stages, small_config
 
 from pipeline.core.math.constants import MOON_RADIUS_M
-from pipeline.core.sensors import render
+from pipeline.core.sensors import height_map
 from pipeline.io.catalogue import load_catalogue
 from pipeline.io.store import RunStore
 from pipeline.io.tables import xyz
@@ -101,7 +101,7 @@ def test_images_scenario_runs_end_to_end_from_pixels(tmp_path, catalogue_db: Pat
     # the navigator puts each crater at its rim crest, where the images show the rim: the rim
     # height and the neighbours' bowls and ejecta under it (from the catalogue's terrain)
     cat = load_catalogue(catalogue_db)
-    crest_m, _ = render.rim_crests(cat.r_mcmf_m, cat.diam_km * 1e3)
+    crest_m, _ = height_map.rim_crests(cat.r_mcmf_m, cat.diam_km * 1e3)
     rows = np.searchsorted(cat.crater_id, ident["matched_id"].to_numpy(),
                            sorter=np.argsort(cat.crater_id))
     expected = np.linalg.norm(crest_m[np.argsort(cat.crater_id)[rows]], axis=1)

@@ -8,7 +8,7 @@ centres on the reference sphere, in the truth and in the map alike (never seen, 
 disagree).
 
 A rim crest's height on a surface (`rim_crests`, `Surface.rim_crest_heights_m`): the crater's
-own rim height (its profile, `pipeline.core.sensors.render.crater_shapes`: Pike 1977) over its
+own rim height (its profile, `pipeline.core.body.crater_shape.crater_shapes`: Pike 1977) over its
 surroundings, the surface read at 1.4 diameters (a level too coarse to hold the crater itself:
 what it was excavated in, larger craters and the long wavelengths of the base and the
 roughness). What the read skips, the surroundings' curvature across the rim and the roughness

@@ -47,9 +47,9 @@ from pipeline.core.sensors.detection import (
     measure_physical,
     ranges,
 )
+from pipeline.core.sensors.identification import select_used
 from pipeline.core.sensors.rim_sensing import Sensed, Sensing
 from pipeline.core.sensors.rim_sensor import catalogue_sigmas
-from pipeline.core.vision.identification import select_used
 from pipeline.core.vision.identify import (
     TRACK_MIN_MATCHES,
     IdentifyOptions,

@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.core.math.constants import MOON_RADIUS_M
+
 SQRT2 = np.sqrt(2.0)
 
 
@@ -330,3 +332,30 @@ class PixelCamera:
         jac = self.bearing_jacobian_body(uv_px)
         eig = np.linalg.eigvalsh(np.swapaxes(jac, -1, -2) @ jac)[..., ::-1]
         return np.asarray(sigma_px, dtype=float)[..., None] * np.sqrt(np.maximum(eig, 0.0))
+
+
+def sun_direction_image(camera: PixelCamera, r_cam_mcmf_m: np.ndarray,
+                        dcm_cam_from_mcmf: np.ndarray, u_sun_mcmf: np.ndarray,
+                        uv_px: np.ndarray | None = None, radius_m: float = MOON_RADIUS_M
+                        ) -> np.ndarray:
+    """Unit image direction(s) (2,) or (N, 2) towards the Sun at pixels uv_px (default the image
+    centre): the image of the Sun's azimuth (its horizontal component) at the surface point seen
+    there, by projecting that point and a point ~1e-3 range towards the Sun (camera model with
+    distortion). Shadows fall the other way; NaN where the pixel does not see the Moon."""
+    single = uv_px is None or np.asarray(uv_px).ndim == 1
+    uv = np.atleast_2d(np.array([camera.width_px / 2, camera.height_px / 2]) if uv_px is None
+                       else np.asarray(uv_px, dtype=float))
+    dcm = np.asarray(dcm_cam_from_mcmf, dtype=float)
+    r_cam = np.asarray(r_cam_mcmf_m, dtype=float)
+    rays = camera.bearings_cam(uv) @ dcm
+    dist = ray_sphere_distance(r_cam, rays, radius_m)
+    p = r_cam + dist[:, None] * rays
+    up = p / np.linalg.norm(p, axis=1, keepdims=True)
+    sun = np.asarray(u_sun_mcmf, dtype=float)
+    horiz = sun - (up @ sun)[:, None] * up
+    horiz /= np.linalg.norm(horiz, axis=1, keepdims=True)
+    step = 1e-3 * dist[:, None] * horiz
+    a = camera.project_cam((p - r_cam) @ dcm.T)
+    b = camera.project_cam((p + step - r_cam) @ dcm.T)
+    d = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
+    return d[0] if single else d

@@ -18,9 +18,8 @@ from pipeline.core.body import illumination
 from pipeline.core.estimation import measurement
 from pipeline.core.math import tiling
 from pipeline.core.math.streams import seed_sequence
-from pipeline.core.sensors import camera, conics
+from pipeline.core.sensors import camera, conics, identification
 from pipeline.core.sensors import rim_sensor as sensor
-from pipeline.core.vision import identification
 
 # The physical sensor's per-detection columns: the measured and the true rim ellipse
 # (undistorted image, px; angle of the major axis from +u towards +v), the apparent diameter

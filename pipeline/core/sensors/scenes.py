@@ -11,7 +11,7 @@ old: Fassett & Thomson 2014), the Sun's elevation and azimuth, albedo and a smoo
 roughness and its Hurst exponent, exposure, read and shot noise, optics blur. Everything is drawn
 from the scene's own generator (`scene_rng(seed, index)`), so a scene is reproducible alone.
 
-Truth: every crater whose rim ellipse (the rendered crest, `render.rim_crests`, imaged through
+Truth: every crater whose rim ellipse (the rendered crest, `height_map.rim_crests`, imaged through
 `conics.rim_conics`) has its centre inside the image: centre (u, v) px (pixel (0, 0) the corner of
 the first pixel), semi-axes, angle, and the incidence at the crater (deg).
 """
@@ -25,9 +25,8 @@ from scipy import ndimage
 
 from pipeline.core.body import illumination
 from pipeline.core.math.constants import MOON_RADIUS_M
-from pipeline.core.sensors import conics, render
-from pipeline.core.sensors.camera import PixelCamera
-from pipeline.core.vision.detectors.classical import sun_direction_image
+from pipeline.core.sensors import conics, exposure, height_map, render
+from pipeline.core.sensors.camera import PixelCamera, sun_direction_image
 
 SCENE_TAG = 0x5CE7E  # the scenes' streams within a seed
 
@@ -153,23 +152,23 @@ def render_scene(rng: np.random.Generator, opts: SceneOptions | None = None) -> 
     az = rng.uniform(0, 2 * np.pi)
     up, east, north = np.eye(3)
     u_sun = np.sin(elev) * up + np.cos(elev) * (np.cos(az) * east + np.sin(az) * north)
-    terrain = render.TerrainOptions(
+    terrain = height_map.TerrainOptions(
         albedo=float(rng.uniform(*opts.albedo)),
         roughness_rms_slope_deg=float(rng.uniform(*opts.roughness_deg)),
         roughness_hurst=float(rng.uniform(*opts.hurst)), threads=1)
     frame = render.render_frame(cam, r_cam, dcm, u_sun, c, d, rng, terrain=terrain,
-                                sensor=render.SensorOptions(shot_noise=False, read_noise_e=0.0),
+                                sensor=exposure.SensorOptions(shot_noise=False, read_noise_e=0.0),
                                 degradation=tau)
     rad = frame.radiance_if * _albedo_field(rng, (s, s), float(rng.uniform(*opts.albedo_pattern)))
     lit = rad[rad > 0]
     mean_if = float(lit.mean()) if lit.size else terrain.albedo * 0.5
-    sensor = render.SensorOptions(
+    sensor = exposure.SensorOptions(
         if_full_well=mean_if * float(rng.uniform(*opts.exposure)),
         full_well_e=float(_log_uniform(rng, opts.full_well_e)),
         read_noise_e=float(_log_uniform(rng, opts.read_noise_e)),
         blur_sigma_px=float(rng.uniform(*opts.blur_px)))
-    _, _, image = render.expose(rad, rng, sensor)
-    crest, rim_r = render.rim_crests(c, d, MOON_RADIUS_M, terrain, tau)
+    _, _, image = exposure.expose(rad, rng, sensor)
+    crest, rim_r = height_map.rim_crests(c, d, MOON_RADIUS_M, terrain, tau)
     ell = conics.ellipse_from_conic(conics.rim_conics(crest, rim_r, r_cam, dcm, cam.k))
     u, v = ell.centre_px[:, 0], ell.centre_px[:, 1]
     keep = ell.valid & (u >= 0) & (u < s) & (v >= 0) & (v < s)

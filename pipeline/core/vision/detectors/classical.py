@@ -31,7 +31,7 @@ one away from the Sun. Steps (all vectorised over pixels, blobs and candidates):
 Conventions: pixel (0, 0) is the corner of the first pixel (as `PixelCamera`), so array element
 [i, j] is the pixel centred at (u, v) = (j + 0.5, i + 0.5); ellipse angles are those of
 `conics.Ellipses` (major axis from +u towards +v). The Sun's image direction is a unit (du, dv)
-pointing towards the Sun (`sun_direction_image`).
+pointing towards the Sun (`pipeline.core.sensors.camera.sun_direction_image`).
 """
 
 from __future__ import annotations
@@ -43,8 +43,6 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from pipeline.core.math.constants import MOON_RADIUS_M
-from pipeline.core.sensors.camera import PixelCamera, ray_sphere_distance
 from pipeline.core.sensors.conics import ellipse_from_conic
 from pipeline.core.vision.detectors.base import Detections, suppress_duplicates
 from pipeline.core.vision.sun_direction import estimate_sun_direction
@@ -66,33 +64,6 @@ class DetectOptions:
     psf_sigma_px: float = 0.5  # the camera's blur, for the curvature correction of the rims
     min_confidence: float = 0.2
     min_axis_ratio: float = 0.5  # semi-minor / semi-major; 0.5 ~ a rim seen 60 deg off-normal
-
-
-def sun_direction_image(camera: PixelCamera, r_cam_mcmf_m: np.ndarray,
-                        dcm_cam_from_mcmf: np.ndarray, u_sun_mcmf: np.ndarray,
-                        uv_px: np.ndarray | None = None, radius_m: float = MOON_RADIUS_M
-                        ) -> np.ndarray:
-    """Unit image direction(s) (2,) or (N, 2) towards the Sun at pixels uv_px (default the image
-    centre): the image of the Sun's azimuth (its horizontal component) at the surface point seen
-    there, by projecting that point and a point ~1e-3 range towards the Sun (camera model with
-    distortion). Shadows fall the other way; NaN where the pixel does not see the Moon."""
-    single = uv_px is None or np.asarray(uv_px).ndim == 1
-    uv = np.atleast_2d(np.array([camera.width_px / 2, camera.height_px / 2]) if uv_px is None
-                       else np.asarray(uv_px, dtype=float))
-    dcm = np.asarray(dcm_cam_from_mcmf, dtype=float)
-    r_cam = np.asarray(r_cam_mcmf_m, dtype=float)
-    rays = camera.bearings_cam(uv) @ dcm
-    dist = ray_sphere_distance(r_cam, rays, radius_m)
-    p = r_cam + dist[:, None] * rays
-    up = p / np.linalg.norm(p, axis=1, keepdims=True)
-    sun = np.asarray(u_sun_mcmf, dtype=float)
-    horiz = sun - (up @ sun)[:, None] * up
-    horiz /= np.linalg.norm(horiz, axis=1, keepdims=True)
-    step = 1e-3 * dist[:, None] * horiz
-    a = camera.project_cam((p - r_cam) @ dcm.T)
-    b = camera.project_cam((p + step - r_cam) @ dcm.T)
-    d = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
-    return d[0] if single else d
 
 
 # --- segmentation and blobs -----------------------------------------------------------------------
