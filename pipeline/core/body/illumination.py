@@ -208,26 +208,42 @@ def ground_sample_distance_m(range_m: npt.ArrayLike, focal_length_px: npt.ArrayL
 
 
 SHADOW_MIN_RESOLUTION_M = 20.0  # casters finer than this are left to each crater's own shading
+SHADOW_RANGE_CELLS = 50.0  # a shadow ray's resolution grows to 2 % of its distance
+SHADOW_SEGMENTS = 7  # resolution x 4 per segment: 50 x 4^7 ~ 8e5 resolutions out
 
 
 def in_terrain_shadow(surface: Surface, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
                       sun_mcmf_m: np.ndarray) -> np.ndarray:
     """Whether the terrain hides the Sun from each crater (centres (N, 3) m MCMF at their rim
     crests, diameters (N,) m): the ray from the centre, 2 % of D above the crest, toward the
-    Sun meets the surface (read at D / 4, no finer than `SHADOW_MIN_RESOLUTION_M`). A crater's
-    own walls clear it (the crest is at the ray's start height); what can cast it is the
-    terrain beyond: a larger crater's rim, a hill, a mountain (the long shadows of a low Sun).
-    Never on the sphere."""
+    Sun meets the surface. A crater's own walls clear it (the crest is at the ray's start
+    height); what can cast it is the terrain beyond: a larger crater's rim, a hill, a mountain
+    (the long shadows of a low Sun). The ray reads the terrain at D / 4 (no finer than
+    `SHADOW_MIN_RESOLUTION_M`) for its first `SHADOW_RANGE_CELLS` resolutions, then in segments
+    each 4x coarser and 4x longer: a caster s away must stand s tan(elevation) above the crater,
+    and the terrain's detail below s / 50 changes that by a small share of it (at a Sun above
+    ~2 deg). Never on the sphere."""
     c = np.asarray(c_mcmf_m, dtype=float).reshape(-1, 3)
     d = np.asarray(diam_m, dtype=float).reshape(-1)
+    hit = np.zeros(len(c), bool)
     if isinstance(surface, Sphere) or not len(c):
-        return np.zeros(len(c), bool)
+        return hit
     up = c / np.linalg.norm(c, axis=1, keepdims=True)
     origin = c + (0.02 * d)[:, None] * up
     to_sun = np.asarray(sun_mcmf_m, dtype=float) - origin
     to_sun /= np.linalg.norm(to_sun, axis=1, keepdims=True)
     res = np.maximum(0.25 * d, SHADOW_MIN_RESOLUTION_M)
-    return np.isfinite(surface.intersect(origin, to_sun, res))
+    start = np.zeros(len(c))
+    for k in range(SHADOW_SEGMENTS + 1):
+        length = SHADOW_RANGE_CELLS * res if k < SHADOW_SEGMENTS else np.full(len(c), np.inf)
+        sel = np.flatnonzero(~hit)
+        if not sel.size:
+            break
+        o = origin[sel] + start[sel, None] * to_sun[sel]
+        hit[sel] = np.isfinite(surface.intersect(o, to_sun[sel], res[sel],
+                                                 max_range_m=length[sel]))
+        start, res = start + length, res * 4.0
+    return hit
 
 
 class TerrainShadows:

@@ -61,9 +61,11 @@ class Surface(Protocol):
         ...
 
     def intersect(self, origin_mcmf_m: np.ndarray, direction_mcmf: np.ndarray,
-                  resolution_m: Resolution = None) -> np.ndarray:
+                  resolution_m: Resolution = None, max_range_m: Resolution = None
+                  ) -> np.ndarray:
         """Distance (m) along unit rays (..., 3) from origins (..., 3) (MCMF, m) to the first
-        surface point in front of the origin; NaN where the ray misses."""
+        surface point in front of the origin; NaN where the ray misses (or meets the surface
+        only beyond max_range_m: scalar or per ray; None: no limit)."""
         ...
 
     def altitude_m(self, r_mcmf_m: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
@@ -109,10 +111,11 @@ class Sphere:
         return np.zeros(np.shape(u_mcmf)[:-1])
 
     def intersect(self, origin_mcmf_m: np.ndarray, direction_mcmf: np.ndarray,
-                  resolution_m: Resolution = None) -> np.ndarray:
-        return ray_sphere_distance(np.asarray(origin_mcmf_m, dtype=float),
-                                   np.asarray(direction_mcmf, dtype=float),
-                                   self.reference_radius_m)
+                  resolution_m: Resolution = None, max_range_m: Resolution = None
+                  ) -> np.ndarray:
+        t = ray_sphere_distance(np.asarray(origin_mcmf_m, dtype=float),
+                                np.asarray(direction_mcmf, dtype=float), self.reference_radius_m)
+        return t if max_range_m is None else np.where(t <= max_range_m, t, np.nan)
 
     def altitude_m(self, r_mcmf_m: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         return np.linalg.norm(np.asarray(r_mcmf_m, dtype=float), axis=-1) - self.reference_radius_m

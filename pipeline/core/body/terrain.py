@@ -418,9 +418,11 @@ class Terrain:
         return self.cache.resident_bytes
 
     def intersect(self, origin_mcmf_m: np.ndarray, direction_mcmf: np.ndarray,
-                  resolution_m: Resolution = None) -> np.ndarray:
+                  resolution_m: Resolution = None, max_range_m: Resolution = None
+                  ) -> np.ndarray:
         """Distance (m) along unit rays (..., 3) from origins (..., 3) (MCMF, m) to the first
-        terrain point in front of the origin; NaN where the ray misses."""
+        terrain point in front of the origin; NaN where the ray misses (or meets the terrain
+        only beyond max_range_m, scalar or per ray: the march stops there)."""
         o, d = np.broadcast_arrays(np.asarray(origin_mcmf_m, float),
                                    np.asarray(direction_mcmf, float))
         shape = o.shape[:-1]
@@ -428,7 +430,10 @@ class Terrain:
         res = self.opts.default_resolution_m if resolution_m is None else resolution_m
         res = np.maximum(np.broadcast_to(np.asarray(res, float), shape).reshape(-1),
                          self.min_resolution_m)
-        return march(self, o, d / np.linalg.norm(d, axis=1, keepdims=True), res).reshape(shape)
+        reach = np.inf if max_range_m is None else np.broadcast_to(
+            np.asarray(max_range_m, float), shape).reshape(-1)
+        return march(self, o, d / np.linalg.norm(d, axis=1, keepdims=True), res,
+                     reach).reshape(shape)
 
     # hooks for the ray march
     def _f(self, p: np.ndarray, res: np.ndarray, deriv: bool

@@ -4,7 +4,9 @@ f(t) = |o + t d| - R - h(o + t d) is the ray's height above the terrain. With th
 slope bounded by s = tan(ray_max_slope), f falls at most at the rate L = cos e + s sin e (e: the
 ray's angle from the local downward vertical), so the step f / L cannot cross the surface (sphere
 tracing: Hart, J. C. 1996, "Sphere tracing: a geometric method for the antialiased ray tracing of
-implicit surfaces", The Visual Computer 12, 527-545, here for a height field). Far from the
+implicit surfaces", The Visual Computer 12, 527-545, here for a height field). A step is never
+shorter than a cell of the level read (a ray grazing the ground would crawl at f / L): what it
+can step over is a sliver thinner than the terrain's own resolution. Far from the
 surface the march reads a coarse level (resolution ~ f / 20) and lowers f by that level's bound
 of the finer terrain above it (`_margin`): an upper bound of the height, so coarse steps are
 safe too. Within `switch` (resolution-scaled) of the surface, Newton steps on the query's level
@@ -20,11 +22,15 @@ import numpy as np
 
 _COARSE = 0.05  # march resolution per metre of height above the terrain
 _SWITCH_CELLS = 2.0  # Newton within this many resolutions of the surface (and >= 0.5 m)
+_NEWTON_REACH_CELLS = 4.0  # the longest unbracketed Newton step (resolutions)
+_MIN_STEP_CELLS = 1.0  # the shortest step (resolutions of the level read): thinner slivers go
 
 
-def march(surf, o: np.ndarray, d: np.ndarray, res: np.ndarray) -> np.ndarray:
+def march(surf, o: np.ndarray, d: np.ndarray, res: np.ndarray,
+          max_range_m: float | np.ndarray = np.inf) -> np.ndarray:
     """Distances (N,) along unit rays d (N, 3) from o (N, 3) to the first terrain point of
-    `surf` (a `Terrain`) at per-ray resolutions res (N,) m; NaN for a miss."""
+    `surf` (a `Terrain`) at per-ray resolutions res (N,) m; NaN for a miss (none within
+    max_range_m, scalar or (N,))."""
     opts = surf.opts
     r_ref = surf.reference_radius_m
     lo_m, hi_m = surf._bounds_m
@@ -35,9 +41,9 @@ def march(surf, o: np.ndarray, d: np.ndarray, res: np.ndarray) -> np.ndarray:
     root = np.sqrt(np.maximum(disc, 0.0))
     inside = oo <= top * top
     t_enter = np.where(inside, 0.0, -b - root)
-    t_leave = -b + root
+    t_leave = np.minimum(-b + root, max_range_m)
     out = np.full(o.shape[0], np.nan)
-    idx = np.flatnonzero(inside | ((disc >= 0) & (t_enter >= 0)))
+    idx = np.flatnonzero((inside | ((disc >= 0) & (t_enter >= 0))) & (t_enter <= t_leave))
     t = t_enter[idx]
     t_lo = t.copy()
     t_hi = np.full(idx.size, np.inf)
@@ -78,7 +84,10 @@ def march(surf, o: np.ndarray, d: np.ndarray, res: np.ndarray) -> np.ndarray:
         u = p / rn[:, None]
         cos_e = -np.einsum("ni,ni->n", di, u)
         step_l = np.maximum(cos_e + slope * np.sqrt(np.maximum(1.0 - cos_e * cos_e, 0.0)), 0.05)
-        t_new = np.where(refine, t, t + np.maximum(fs, 0.0) / step_l)
+        # at least a cell of the level read: a grazing ray's bound alone (f / L, f ~ metres)
+        # would crawl; a crossing within the step brackets the root for bisection and Newton
+        step = np.maximum(np.maximum(fs, 0.0) / step_l, _MIN_STEP_CELLS * rk)
+        t_new = np.where(refine, t, t + step)
         t_new = np.where(fine & bracketed, 0.5 * (t_lo + t_hi), t_new)
         newton = want & ~done & (bracketed | (f < switch))
         if newton.any():
@@ -86,7 +95,11 @@ def march(surf, o: np.ndarray, d: np.ndarray, res: np.ndarray) -> np.ndarray:
             dfdt = -cos_e[k] - (r_ref / rn[k]) * np.einsum("ni,ni->n", di[k], g[k])
             with np.errstate(divide="ignore", invalid="ignore"):
                 tn = t[k] - f[k] / dfdt
-            ok = (tn > t_lo[k]) & (tn < t_hi[k]) & np.isfinite(tn) & (dfdt < 0)
+            # unbracketed, a Newton step extrapolates the local slope: within a few cells only
+            # (a ray along rising ground would leap past the rise ahead)
+            reach = np.where(bracketed[k], np.inf, _NEWTON_REACH_CELLS * ri[k])
+            ok = ((tn > t_lo[k]) & (tn < t_hi[k]) & (tn - t[k] <= reach) & np.isfinite(tn)
+                  & (dfdt < 0))
             t_new[k] = np.where(ok, tn, t_new[k])
         # the height expected after the step over level ground: the next level, and whether the
         # next evaluation should bring the gradient for a Newton step
