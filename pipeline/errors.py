@@ -15,3 +15,7 @@ class CatalogueError(PipelineError):
 
 class StageInputError(PipelineError):
     """A stage's upstream output is missing or does not match what the stage needs."""
+
+
+class TableSchemaError(PipelineError):
+    """A table a stage writes does not match its declared schema (`pipeline.vocab.tables`)."""

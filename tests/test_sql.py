@@ -1,10 +1,10 @@
 """`just sql`: read-only over the catalogue and a run's tables.
 
 A tiny project in tmp_path: two catalogues (the default and `other.duckdb`) and a run `r1`
-(config.json naming `other.duckdb`, tables `detections` and `frames`). Every write or escape
-statement is refused with one clear line and leaves every file byte-identical; SELECTs over the
-catalogue, the run and both work; `--run` uses the run's catalogue; bad `--run` values, a timeout,
-the table listing and the csv/markdown output.
+(config.json naming `other.duckdb`, tables `hits` and `looks`: no stage's, so not held to a
+declared schema). Every write or escape statement is refused with one clear line and leaves every
+file byte-identical; SELECTs over the catalogue, the run and both work; `--run` uses the run's
+catalogue; bad `--run` values, a timeout, the table listing and the csv/markdown output.
 """
 
 from __future__ import annotations
@@ -47,9 +47,9 @@ def make_run(runs: Path, run_id: str, db_path: str) -> None:
     config = {"run_id": run_id, "catalogue": {"db_path": db_path}}
     with store.lock():
         tx = store.begin("detect", "key", {}, "config-hash", "code-hash")
-        tx.table("detections", pl.DataFrame({"crater_id": [1, 1, 7], "t_s": [0.0, 10.0, 10.0],
+        tx.table("hits", pl.DataFrame({"crater_id": [1, 1, 7], "t_s": [0.0, 10.0, 10.0],
                                              "used": [True, False, True]}))
-        tx.table("frames", pl.DataFrame({"t_s": [0.0, 10.0], "n_seen": [1, 2]}))
+        tx.table("looks", pl.DataFrame({"t_s": [0.0, 10.0], "n_seen": [1, 2]}))
         tx.commit(config=config)
 
 
@@ -108,7 +108,7 @@ ESCAPES = {
     "import database": "IMPORT DATABASE '{root}/export'",
     "read_csv": "SELECT * FROM read_csv('/etc/passwd')",
     "read_parquet of a run file": "SELECT * FROM read_parquet('{root}/runs/r1/detect/*.parquet')",
-    "replacement scan": "SELECT * FROM '{root}/runs/r1/detect/frames.parquet'",
+    "replacement scan": "SELECT * FROM '{root}/runs/r1/detect/looks.parquet'",
     "glob": "SELECT * FROM glob('/root/*')",
     "read_text": "SELECT * FROM read_text('/etc/hostname')",
     "install": "INSTALL httpfs",
@@ -128,10 +128,10 @@ ESCAPES = {
     "insert catalogue": "INSERT INTO craters VALUES (9, 1, 0, 0)",
     "drop catalogue": "DROP TABLE craters.craters",
     "alter catalogue": "ALTER TABLE craters RENAME TO y",
-    "delete run": "DELETE FROM detections",
-    "update run": "UPDATE detections SET used = false",
-    "insert run": "INSERT INTO detections VALUES (1, 0, true)",
-    "drop run": "DROP VIEW detections",
+    "delete run": "DELETE FROM hits",
+    "update run": "UPDATE hits SET used = false",
+    "insert run": "INSERT INTO hits VALUES (1, 0, true)",
+    "drop run": "DROP VIEW hits",
     "checkpoint pragma": "PRAGMA force_checkpoint",
     "profiling pragma": "PRAGMA profiling_output = '{root}/profile.txt'",
     "enable_profiling()": "SELECT * FROM enable_profiling(save_location = '{cat}.wal')",
@@ -160,7 +160,7 @@ LOCKED_ENGINE = {  # refused by the session itself, even without the statement c
     "copy to": "COPY (SELECT 1) TO '{root}/out.csv'",
     "export database": "EXPORT DATABASE '{root}/export'",
     "read_csv": "SELECT * FROM read_csv('/etc/passwd')",
-    "read_parquet": "SELECT * FROM read_parquet('{root}/runs/r1/detect/frames.parquet')",
+    "read_parquet": "SELECT * FROM read_parquet('{root}/runs/r1/detect/looks.parquet')",
     "glob": "SELECT * FROM glob('/root/*')",
     "install": "INSTALL httpfs",
     "load": "LOAD httpfs",
@@ -169,8 +169,8 @@ LOCKED_ENGINE = {  # refused by the session itself, even without the statement c
     "set allowed paths": "SET allowed_paths = ['/']",
     "create in the catalogue": "CREATE TABLE x (a INT)",
     "delete catalogue": "DELETE FROM craters",
-    "delete run": "DELETE FROM detections",
-    "insert run": "INSERT INTO detections VALUES (1, 0, true)",
+    "delete run": "DELETE FROM hits",
+    "insert run": "INSERT INTO hits VALUES (1, 0, true)",
     "profiling pragma": "PRAGMA profiling_output = '{root}/profile.txt'",
 }
 
@@ -206,15 +206,15 @@ def test_selects_over_the_catalogue_the_run_and_both(project):
     before = snapshot(project)
     assert query("SELECT count(*) AS n FROM craters") == "n\n3\n"
     assert query("SELECT count(*) AS n FROM craters.craters") == "n\n3\n"
-    assert query("SELECT t_s, n_seen FROM frames ORDER BY t_s", run="r1") == \
+    assert query("SELECT t_s, n_seen FROM looks ORDER BY t_s", run="r1") == \
         "t_s,n_seen\n0.0,1\n10.0,2\n"
-    joined = ("SELECT d.t_s, c.crater_id, c.diam_km FROM detections d JOIN craters c "
+    joined = ("SELECT d.t_s, c.crater_id, c.diam_km FROM hits d JOIN craters c "
               "USING (crater_id) WHERE d.used ORDER BY d.t_s, c.crater_id")
     assert query(joined, run="r1") == "t_s,crater_id,diam_km\n0.0,1,99.0\n10.0,7,7.0\n"
-    for sql in ("DESCRIBE detections", "SHOW TABLES", "SUMMARIZE craters",
-                "PRAGMA table_info('craters')", "EXPLAIN SELECT * FROM detections",
+    for sql in ("DESCRIBE hits", "SHOW TABLES", "SUMMARIZE craters",
+                "PRAGMA table_info('craters')", "EXPLAIN SELECT * FROM hits",
                 "EXPLAIN ANALYZE SELECT count(*) FROM craters", "CALL pragma_version()",
-                "EXPLAIN (FORMAT json) SELECT 1", "-- a comment\nFROM frames",
+                "EXPLAIN (FORMAT json) SELECT 1", "-- a comment\nFROM looks",
                 "SELECT * FROM craters.main.catalogue_meta"):
         assert query(sql, run="r1")
     assert snapshot(project) == before
@@ -327,8 +327,8 @@ def test_a_slow_query_is_stopped_at_the_timeout(project):
 def test_no_query_lists_the_tables_and_their_columns(project):
     assert query(None, run="r1") == (
         "table,in,rows,columns\n"
-        'detections,run r1,3,"crater_id BIGINT, t_s DOUBLE, used BOOLEAN"\n'
-        'frames,run r1,2,"t_s DOUBLE, n_seen BIGINT"\n'
+        'hits,run r1,3,"crater_id BIGINT, t_s DOUBLE, used BOOLEAN"\n'
+        'looks,run r1,2,"t_s DOUBLE, n_seen BIGINT"\n'
         'catalogue_meta,catalogue,1,"source VARCHAR, rows_kept BIGINT"\n'
         'craters,catalogue,2,"crater_id BIGINT, diam_km DOUBLE, lat_deg DOUBLE, lon_deg DOUBLE, '
         'tile BIGINT"\n')
@@ -422,9 +422,9 @@ def test_cli_errors_are_one_error_line(project, args, fragment):
 
 def test_cli_prints_csv_and_lists_tables(project):
     result = invoke("--run", "r1", "--format", "csv",
-                    "SELECT crater_id, count(*) AS n FROM detections GROUP BY 1 ORDER BY 1")
+                    "SELECT crater_id, count(*) AS n FROM hits GROUP BY 1 ORDER BY 1")
     assert result.exit_code == 0, result.output
     assert result.output == "crater_id,n\n1,2\n7,1\n"
     listing = invoke("--run", "r1")
     assert listing.exit_code == 0, listing.output
-    assert "detections" in listing.output and "crater_id BIGINT" in listing.output
+    assert "hits" in listing.output and "crater_id BIGINT" in listing.output

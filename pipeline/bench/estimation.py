@@ -19,6 +19,7 @@ from pipeline.config import load_config
 from pipeline.core.math import frames
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.io.store import RunStore
+from pipeline.vocab import METHODS
 
 
 def bench_detect(scratch: Scratch) -> list[Result]:
@@ -74,7 +75,7 @@ def bench_estimators(scratch: Scratch) -> list[Result]:
     for n in (10, 20, 100, 900):
         rng = np.random.default_rng(n)
         problems = [_geometry(rng, n, d.sigma_bearing, d.sigma_range_m) for _ in range(200)]
-        for method in ("paper", "joint"):
+        for method in METHODS:
             for rob in (None, robust):
                 it = iter(problems)
 

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.errors import StageInputError
 from pipeline.io.files import _fsync_dir, atomic_write_text, now_iso, sha256_file
+from pipeline.vocab.tables import check_table
 
 if TYPE_CHECKING:
     from pipeline.io.store import RunStore
@@ -62,7 +63,9 @@ class StageTransaction:
         return self.folder / name
 
     def table(self, name: str, frame: Any) -> Path:
-        """Write a polars DataFrame as `<name>.parquet`, a table of the run (SQL: `name`)."""
+        """Write a polars DataFrame as `<name>.parquet`, a table of the run (SQL: `name`), once
+        it matches its declared schema (`pipeline.vocab.tables`; TableSchemaError if not)."""
+        check_table(name, frame)
         path = self.output(f"{name}.parquet")
         frame.write_parquet(path)
         self.tables.append(name)

@@ -17,6 +17,8 @@ from scipy.optimize import minimize
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.io.tables import reduced
 from pipeline.ops.render import FrameImage
+from pipeline.vocab.schema import Dtype
+from pipeline.vocab.tables import IMAGES, PIXEL_DETECTIONS, RENDERED_CRATERS
 
 DIAM_BINS_PX = (5.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0, np.inf)
 INCIDENCE_BINS_DEG = (0.0, 30.0, 50.0, 70.0, 80.0, 90.0)
@@ -28,20 +30,10 @@ Frames = list[tuple[int, float, FrameImage]]  # (frame, t_s, frame image)
 
 _ELLIPSE = ("ellipse_u_px", "ellipse_v_px", "semi_major_px", "semi_minor_px", "ellipse_angle_rad")
 _TRUE = tuple("true_" + n for n in _ELLIPSE)
-TRUTH_SCHEMA: dict[str, type[pl.DataType]] = {
-    "frame": pl.Int32, "t_s": pl.Float64, "crater_id": pl.Int64,
-    **dict.fromkeys(_TRUE, pl.Float64),
-    "apparent_diam_px": pl.Float64, "incidence_deg": pl.Float64, "emission_deg": pl.Float64,
-    "p_model": pl.Float64, "detected": pl.Boolean, "det_index": pl.Int32,
-    "centre_error_px": pl.Float64, "diameter_error_share": pl.Float64}
-DETECTIONS_SCHEMA: dict[str, type[pl.DataType]] = {
-    "frame": pl.Int32, "t_s": pl.Float64, "det_index": pl.Int32,
-    **dict.fromkeys(_ELLIPSE, pl.Float64), "confidence": pl.Float64, "crater_id": pl.Int64,
-    "truth_counted": pl.Boolean, **dict.fromkeys(_TRUE, pl.Float64)}
-IMAGES_SCHEMA: dict[str, type[pl.DataType]] = {
-    "frame": pl.Int32, "t_s": pl.Float64, "render_ms": pl.Float64, "detect_ms": pl.Float64,
-    "n_detections": pl.Int64, "n_false": pl.Int64, "n_truth": pl.Int64, "n_truth_10px": pl.Int64,
-    "n_detected_10px": pl.Int64, "recall_10px": pl.Float64, "precision": pl.Float64}
+# the stage tables rendered_craters, pixel_detections and images, as declared
+TRUTH_SCHEMA = RENDERED_CRATERS.columns()
+DETECTIONS_SCHEMA = PIXEL_DETECTIONS.columns()
+IMAGES_SCHEMA = IMAGES.columns()
 
 
 def _ellipse_cols(centre: np.ndarray, a: np.ndarray, b: np.ndarray, ang: np.ndarray,
@@ -53,11 +45,11 @@ def _equivalent_diam(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 2.0 * np.sqrt(a * b)
 
 
-def _frame_table(cols: dict[str, object], schema: dict[str, type[pl.DataType]]) -> pl.DataFrame:
+def _frame_table(cols: dict[str, object], schema: dict[str, Dtype]) -> pl.DataFrame:
     return pl.DataFrame(cols, schema=schema, strict=False)
 
 
-def _concat(parts: list[pl.DataFrame], schema: dict[str, type[pl.DataType]]) -> pl.DataFrame:
+def _concat(parts: list[pl.DataFrame], schema: dict[str, Dtype]) -> pl.DataFrame:
     return pl.concat(parts) if parts else pl.DataFrame(schema=schema)
 
 

@@ -30,6 +30,7 @@ from pipeline.io.tables import quats, xyz
 from pipeline.ops import estimate
 from pipeline.stages import DAG
 from pipeline.viz.rerun import base, estimation
+from pipeline.vocab.tables import ESTIMATES
 
 WINDOW = {"start_s": 1900.0, "end_s": 2000.0, "frame_rate_hz": 1.0}
 N_FRAMES = 101
@@ -37,18 +38,6 @@ METHODS = ("paper", "joint")
 PIPELINE = ("ingest", "trajectory", "detect", "estimate")
 FALSE_MATCHES = {"false_match_share": 0.1}
 
-COLUMNS = {
-    "frame": pl.Int32, "t_s": pl.Float64, "method": pl.String, "cap": pl.Int64,
-    "status": pl.String,
-    **{f"r_mci_{c}_m": pl.Float64 for c in "xyz"},
-    **{f"q_mci_from_body_{c}": pl.Float64 for c in "xyzw"},
-    **{f"sigma_pos_{c}_m": pl.Float64 for c in "xyz"},
-    **{f"sigma_att_{c}_rad": pl.Float64 for c in "xyz"},
-    "cov": pl.Array(pl.Float64, 36), "att_cov_quest": pl.Array(pl.Float64, 9),
-    "n_used": pl.Int64, "n_rejected": pl.Int64, "rejected_ids": pl.List(pl.Int64),
-    "rejected_det_index": pl.List(pl.Int32),
-    "iterations": pl.Int32, "solve_ms": pl.Float64,
-}
 # Truth that the detection and trajectory stages write beside the measurements.
 TRUE_DETECTION_COLUMNS = ("crater_id", "diam_km", "u_true_body_x", "u_true_body_y",
                           "u_true_body_z", "rho_true_m", "false_match")
@@ -119,7 +108,7 @@ def rms(x: np.ndarray) -> float:
 def test_estimates_table_rows_columns_and_database(runs):
     store = runs["clean"]
     est, frames = read(store, "estimates"), read(store, "frames")
-    assert est.schema == pl.Schema(COLUMNS)
+    assert est.schema == pl.Schema(ESTIMATES.columns())
     assert est.height == N_FRAMES * len(METHODS)
     for method in METHODS:  # one row per frame and method, in frame order
         m = est.filter(pl.col("method") == method)

@@ -17,6 +17,7 @@ from conftest import run_stages, small_config
 from pipeline.config import ConfigError, RunConfig
 from pipeline.io.store import RunStore
 from pipeline.stages.score import headline
+from pipeline.vocab.tables import DETECTIONS, FRAMES
 
 WINDOW = {"start_s": 1900.0, "end_s": 1930.0, "frame_rate_hz": 1.0}
 N_FRAMES = 31
@@ -76,6 +77,8 @@ def test_tracking_identifies_the_craters_and_refuses_the_false_detections(
         tracking_run: RunStore) -> None:
     det, fr = table(tracking_run, "detections"), table(tracking_run, "frames")
     assert fr.height == N_FRAMES
+    assert DETECTIONS.present(det.columns) == ("physical", "identification")  # declared groups
+    assert FRAMES.present(fr.columns) == ("sun", "identification")
     assert fr["id_mode"].to_list() == ["tracking"] * N_FRAMES
     assert fr["id_ok"].all()
     assert np.all(fr["id_ms"].to_numpy() > 0)

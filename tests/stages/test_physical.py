@@ -20,9 +20,9 @@ from conftest import query, run_stages, small_config
 
 from pipeline.core.math import frames
 from pipeline.core.sensors import rim_sensor as sensor
-from pipeline.core.sensors.detection import PHYSICAL_COLUMNS
 from pipeline.io.store import RunStore
 from pipeline.io.tables import xyz
+from pipeline.vocab.tables import DETECTIONS, FRAMES
 
 WINDOW = {"start_s": 1900.0, "end_s": 1960.0, "frame_rate_hz": 1.0}
 N_FRAMES = 61
@@ -35,7 +35,7 @@ CAMERA = {"sensor": "physical", "pixel_sigma_px": 0.3, "bearing": "corrected",
           **ERRORS}
 TO_ESTIMATE = ("ingest", "trajectory", "detect", "estimate")
 TO_SCORE = ("ingest", "trajectory", "imu", "detect", "estimate", "navigate", "score")
-SUN_COLUMNS = ("sun_mci_x", "sun_mci_y", "sun_mci_z", "sun_elevation_deg", "gsd_m")
+PHYSICAL_COLUMNS = tuple(DETECTIONS.groups["physical"].columns)
 
 
 def run(root: Path, db: Path, run_id: str, stages: tuple[str, ...], detection: dict,
@@ -73,7 +73,8 @@ def test_physical_detections_and_frames_have_their_columns(camera_run: RunStore)
     det = table(camera_run, "detections")
     fr = table(camera_run, "frames")
     assert fr.height == N_FRAMES
-    assert set(PHYSICAL_COLUMNS) <= set(det.columns)
+    assert DETECTIONS.present(det.columns) == ("physical",)  # the declared optional groups
+    assert FRAMES.present(fr.columns) == ("sun",)
     per_frame = det.group_by("frame").len()
     assert per_frame.height == N_FRAMES and per_frame["len"].min() > 20
     assert det.filter(pl.col("used")).height > 20 * N_FRAMES
@@ -89,7 +90,6 @@ def test_physical_detections_and_frames_have_their_columns(camera_run: RunStore)
     rel = det["rho_meas_m"].to_numpy() / det["rho_true_m"].to_numpy() - 1.0
     assert 0.01 < np.std(rel) < 0.2
     # The frames: the Sun's unit direction, its elevation and the ground sample distance.
-    assert set(SUN_COLUMNS) <= set(fr.columns)
     np.testing.assert_allclose(np.linalg.norm(xyz(fr, "sun_mci", ""), axis=1), 1.0, rtol=1e-12)
     elevation = fr["sun_elevation_deg"].to_numpy()
     assert np.all((elevation > 40.0) & (elevation < 55.0)), elevation[[0, -1]]
@@ -219,5 +219,5 @@ def test_the_paper_sensor_has_no_physical_columns(tmp_path: Path, catalogue_db: 
                 epoch=False)
     det = table(store, "detections")
     assert det.height > 0
-    assert not set(PHYSICAL_COLUMNS) & set(det.columns)
-    assert not set(SUN_COLUMNS) & set(table(store, "frames").columns)
+    assert DETECTIONS.present(det.columns) == ()
+    assert FRAMES.present(table(store, "frames").columns) == ()

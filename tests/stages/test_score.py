@@ -28,6 +28,7 @@ from pipeline.io.tables import quats, xyz
 from pipeline.ops.score import true_used_positions
 from pipeline.stages import score
 from pipeline.viz.rerun import base as rerun_base
+from pipeline.vocab.tables import SCORES, SUMMARY
 
 WINDOW = {"start_s": 1400.0, "end_s": "none", "frame_rate_hz": 0.02}
 N_FRAMES = 32
@@ -41,20 +42,6 @@ EXTRA_WINDOW = {"name": "2400-3000 s", "start_s": 2400.0, "end_s": 3000.0}
 POSITION = ("x_m", "y_m", "z_m")
 ATTITUDE = ("phi_deg", "theta_deg", "psi_deg")
 ATTITUDE_MCI = ("phi_mci_deg", "theta_mci_deg", "psi_mci_deg")
-SCORES_SCHEMA = {
-    "method": pl.String, "cap": pl.Int64, "frame": pl.Int32, "t_s": pl.Float64,
-    "status": pl.String, "n_used": pl.Int64,
-    **{f"err_{q}": pl.Float64 for q in POSITION + ATTITUDE},
-    **{f"sigma_{q}": pl.Float64 for q in POSITION + ATTITUDE},
-    **{f"crlb_{q}": pl.Float64 for q in POSITION + ATTITUDE},
-    **{f"err_{q}": pl.Float64 for q in ATTITUDE_MCI},
-    **{f"crlb_{q}": pl.Float64 for q in ATTITUDE_MCI},
-    "nees": pl.Float64, "nees_position": pl.Float64,
-}
-SUMMARY_COLUMNS = ["method", "window", "start_s", "end_s", "quantity", "rmse", "max_abs",
-                   "p95_abs", "crlb_rms", "ratio_to_crlb", "share_estimated", "mean_nees",
-                   "frames"]
-
 # Tolerances. A DCM entry after a quaternion round trip and a product is exact to a few ulp; 1e-14
 # bounds it, and the tiny error angles read off it inherit that absolutely (~6e-13 deg).
 DCM_ROUNDING = 1e-14
@@ -123,7 +110,7 @@ def columns(table: pl.DataFrame, names) -> np.ndarray:
 def test_scores_have_one_row_per_method_and_frame(runs):
     r = runs["clean"]
     scores, est, traj = r.read("scores"), r.read("estimates"), r.read("trajectory")
-    assert dict(scores.schema) == SCORES_SCHEMA
+    assert dict(scores.schema) == SCORES.columns()
     assert scores.height == N_FRAMES * len(METHODS) == traj.height * len(METHODS)
     for method in METHODS:
         m = scores.filter(pl.col("method") == method)
@@ -309,7 +296,7 @@ def expected_summary(scores: pl.DataFrame, windows: dict[str, tuple[float, float
 def test_summary_windows_and_statistics(runs, name):
     r = runs[name]
     scores, summary = r.read("scores"), r.read("summary")
-    assert summary.columns == SUMMARY_COLUMNS
+    assert summary.columns == list(SUMMARY.columns())
     t_impact = r.store.entry("trajectory")["info"]["t_impact_s"]
     assert abs(t_impact - 3000.0) < 1e-3  # the default descent's solved impact time
     windows = {w.name: (w.start_s, w.end_s) for w in r.cfg.scoring.windows}

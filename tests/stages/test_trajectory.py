@@ -21,16 +21,13 @@ from pipeline.errors import PipelineError
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
 from pipeline.viz.rerun import base
+from pipeline.vocab.tables import TRAJECTORY
 
 MU, R_M = MOON_GM_M3_S2, MOON_RADIUS_M
 RA_M = R_M + 300e3  # default apoapsis altitude 300 km
 SIDEREAL_MONTH_S = 27.321661 * 86_400.0
 
-VECTORS = [f"{p}_{c}{u}" for p, u in (("r_mci", "_m"), ("v_mci", "_m_s")) for c in "xyz"]
-QUAT = [f"q_mci_from_body_{c}" for c in "xyzw"]
-STATE = [*VECTORS, *QUAT]
-COLUMNS = ["frame", "t_s", *STATE, "altitude_m", "speed_m_s", "theta_m_rad", "lat_deg", "lon_deg",
-           "r_mcmf_x_m", "r_mcmf_y_m", "r_mcmf_z_m", "nadir_error_rad"]
+COLUMNS = list(TRAJECTORY.columns())  # in the order written
 
 # Tolerances: the integrator's accuracy is stated in tests/core/test_orbit.py (dense position within
 # 1e-4 m of Kepler, impact time within 1e-3 s, nadir pointing within 1e-9 rad). Pure float64

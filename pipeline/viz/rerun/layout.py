@@ -174,7 +174,7 @@ def save_layout(path: Path, scores=None) -> Path:
     return Path(path)
 
 
-def sweep_blueprint(methods: tuple[str, ...] | list[str] = ("paper", "joint")) -> rrb.Blueprint:
+def sweep_blueprint(methods: tuple[str, ...] | list[str] = METHODS) -> rrb.Blueprint:
     """The sweep recording's layout: per method, |position error| (m) and |attitude error| (deg)
     per cap, one unit per plot (pass it as `recording(sweep_id, path, layout=...)`)."""
     return rrb.Blueprint(rrb.Grid(*[

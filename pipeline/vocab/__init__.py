@@ -1,5 +1,7 @@
-"""One vocabulary for the whole package: methods, statuses, scored quantities (with labels and
-units) and colours. Config validation, tables, the report and the recordings all read it here."""
+"""One vocabulary for the whole package: methods (`METHODS`, the registered estimators: every list
+of methods reads it), statuses, scored quantities (with labels and units) and colours. Config
+validation, tables, the report and the recordings all read it here. The stage tables' schemas are
+in `pipeline.vocab.tables` (imported apart: it loads polars)."""
 
 from __future__ import annotations
 
