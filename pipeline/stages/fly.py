@@ -154,7 +154,8 @@ def run(ctx: StageContext) -> StageResult:
     trajectory = tables.trajectory_table(rec)
     imu, truth = tables.imu_tables(rec, dt)
     frames_sun = None if sun is None else np.array([sun(s.t_s) for s in rec.frames])
-    detections, frames_table = detection_tables(o.model, craters, trajectory,
+    # the craters as the navigator holds them (rims on its map): what it measured against
+    detections, frames_table = detection_tables(o.model, sc.navigator_craters, trajectory,
                                                 [s.detections for s in rec.frames], frames_sun)
     if o.identify is not None:
         per_det, per_frame = frame_columns([s.result for s in rec.frames if s.result])
