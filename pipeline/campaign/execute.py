@@ -130,7 +130,7 @@ def collect(cfg: RunConfig, store: RunStore) -> dict[str, pl.DataFrame]:
     here when the run stopped at `estimate`). Empty where the run has no such table."""
     from pipeline.stages.score import frame_scores, read_scoring_inputs
 
-    arts = store.artifacts()
+    arts = store.verified()
     out = {part: pl.DataFrame() for part in PARTS}
     trajectory = (pl.read_parquet(arts["trajectory.parquet"], columns=["frame", "altitude_m"])
                   if "trajectory.parquet" in arts else None)

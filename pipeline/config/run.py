@@ -3,7 +3,6 @@ derived from several sections (the navigator's assumed noise, IMU and mounting).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -11,7 +10,7 @@ import numpy as np
 
 from pipeline.config.catalogue import CatalogueConfig
 from pipeline.config.checks import MAX_SEED, _check, _num, validate_run_id
-from pipeline.config.detection import DetectionConfig
+from pipeline.config.detection import DetectionConfig, mounting_dcm
 from pipeline.config.estimation import EstimationConfig
 from pipeline.config.flight import FlightConfig, VelocimeterConfig
 from pipeline.config.inertial import MAX_IMU_SAMPLES, AltimeterConfig, ImuConfig
@@ -204,9 +203,8 @@ class RunConfig:
         assumed = self.estimation.assumed_camera_mounting_deg
         if assumed is None:
             return None
-        d = self.detection
-        nav = dataclasses.replace(d, camera_mounting_deg=assumed).pixel_camera()
-        return nav.dcm_body_from_cam @ d.pixel_camera().dcm_cam_from_body
+        # the mounting alone (the stage's view of `detection` is no dataclass to replace in)
+        return mounting_dcm(assumed) @ self.detection.pixel_camera().dcm_cam_from_body
 
     def navigator_sigmas(self) -> tuple[float, float]:
         """(sigma_bearing ~rad, sigma_range_m m) the estimators assume: estimation.assumed_sigma_*,
