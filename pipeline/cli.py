@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 from pathlib import Path
@@ -221,9 +222,23 @@ def sql(
     """Run read-only SQL over the crater catalogue (as `craters`) and a run's tables."""
     from pipeline.io.sqlshell import run_query
 
-    if query == "-":
-        query = sys.stdin.read()
     try:
+        if query == "-":
+            try:
+                query = sys.stdin.buffer.read().decode("utf-8")
+            except UnicodeDecodeError as exc:
+                byte = exc.object[exc.start]
+                raise PipelineError(f"the query on standard input is not UTF-8 text (byte "
+                                    f"{byte:#04x} at offset {exc.start})") from None
+        elif query is not None:
+            try:
+                query.encode("utf-8")
+            except UnicodeEncodeError as exc:
+                raise PipelineError(f"the query is not UTF-8 text (a byte that is no character "
+                                    f"at offset {exc.start})") from None
+        if not math.isfinite(timeout_s):
+            raise PipelineError(f"--timeout-s {timeout_s}: must be a finite number of seconds "
+                                "(> 0)")
         run_query(query, run=run, db=db, fmt=format, max_rows=max_rows, timeout_s=timeout_s,
                   campaign=campaign)
     except PipelineError as exc:  # one line, also when `app` runs without `main` (CliRunner)

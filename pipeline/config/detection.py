@@ -28,6 +28,15 @@ DETECTION_SOURCES = ("model", "pixels")
 
 DIAM_UNITS = ("km", "m")
 
+# The fields only the physical sensor reads (`ops.detect.physical_sensor`, `pixel_camera`): with
+# the paper's sensor a value of theirs changes nothing.
+PHYSICAL_ONLY = ("pixel_sigma_px", "distortion", "camera_mounting_deg", "bearing",
+                 "detect_min_diameter_px", "catalogue_sigma_horizontal_m",
+                 "catalogue_sigma_height_m", "catalogue_sigma_diameter_share",
+                 "site_map_sigma_horizontal_m", "site_map_sigma_height_m",
+                 "site_map_relative_sigma_m", "world_seed", "false_detection_share")
+
+
 def mounting_dcm(mounting_deg: tuple[float, ...]) -> np.ndarray:
     """dcm_body_from_cam (3, 3) of a camera mounting: (yaw, pitch, roll) deg, intrinsic ZYX."""
     z, y, x = np.radians(mounting_deg)

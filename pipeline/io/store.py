@@ -55,6 +55,9 @@ class RunLockedError(PipelineError):
     """Another command holds the run's lock (and we were told not to wait)."""
 
 
+CAMPAIGN_MARKERS = ("spec.toml", "campaign.json")  # files of a campaign's folder
+
+
 class RunStore:
     """One run folder: committed stage outputs, their entries, the lock and the derived views."""
 
@@ -233,7 +236,12 @@ class RunStore:
         """Hold the run's lock (one command per run at a time); sweep dead leftovers inside.
 
         `wait=False` raises RunLockedError at once when another command holds it; otherwise wait,
-        saying once who holds it through `announce(line)`."""
+        saying once who holds it through `announce(line)`. A campaign's folder (its spec.toml or
+        campaign.json, no manifest) is refused: a run's stages never write into it."""
+        if not self.manifest_path.is_file() and any(
+                (self.run_dir / n).is_file() for n in CAMPAIGN_MARKERS):
+            raise StageInputError(f"{self.run_dir}: the folder of campaign {self.run_id!r}, not "
+                                  "a run's; give the run another --run-id")
         self.run_dir.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.run_dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
         try:
