@@ -45,6 +45,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import polars as pl
@@ -255,6 +256,14 @@ def clamp_workers(workers: int | None, cores: int | None) -> int | None:
     return cores
 
 
+def _code_path() -> str:
+    """PYTHONPATH for the workers: the folder holding this `pipeline` package first (a worker
+    runs the driver's code, not another checkout's installed one), then the driver's."""
+    here = str(Path(__file__).resolve().parents[2])
+    rest = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p and p != here]
+    return os.pathsep.join([here, *rest])
+
+
 def _run_on_ray(pending: list[RunTask], shared: dict[str, Any], catalogue: Catalogue | None,
                 save: Callable[[dict[str, Any]], None], address: str | None,
                 workers: int | None, name: str) -> tuple[int, float]:
@@ -266,7 +275,8 @@ def _run_on_ray(pending: list[RunTask], shared: dict[str, Any], catalogue: Catal
     if not ray.is_initialized():
         kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
                                   "configure_logging": False,
-                                  "runtime_env": {"env_vars": ONE_THREAD}}
+                                  "runtime_env": {"env_vars": {**ONE_THREAD,
+                                                               "PYTHONPATH": _code_path()}}}
         if address is None and not os.environ.get("RAY_ADDRESS"):
             kwargs["num_cpus"] = clamp_workers(workers, os.cpu_count()) or os.cpu_count() or 1
         ray.init(address=address, **kwargs)
