@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 from pathlib import Path
@@ -228,9 +229,23 @@ def sql(
     """Run read-only SQL over the crater catalogue (as `craters`) and a run's tables."""
     from pipeline.io.sqlshell import run_query
 
-    if query == "-":
-        query = sys.stdin.read()
     try:
+        if query == "-":
+            try:
+                query = sys.stdin.buffer.read().decode("utf-8")
+            except UnicodeDecodeError as exc:
+                byte = exc.object[exc.start]
+                raise PipelineError(f"the query on standard input is not UTF-8 text (byte "
+                                    f"{byte:#04x} at offset {exc.start})") from None
+        elif query is not None:
+            try:
+                query.encode("utf-8")
+            except UnicodeEncodeError as exc:
+                raise PipelineError(f"the query is not UTF-8 text (a byte that is no character "
+                                    f"at offset {exc.start})") from None
+        if not math.isfinite(timeout_s):
+            raise PipelineError(f"--timeout-s {timeout_s}: must be a finite number of seconds "
+                                "(> 0)")
         run_query(query, run=run, db=db, fmt=format, max_rows=max_rows, timeout_s=timeout_s,
                   campaign=campaign)
     except PipelineError as exc:  # one line, also when `app` runs without `main` (CliRunner)
@@ -246,12 +261,11 @@ def compare(
 ) -> None:
     """Compare runs side by side: crater counts and errors against time and altitude, windows,
     and the ellipse-centre bias (runs/compare-<name>/report.md)."""
-    import json
-
     import polars as pl
 
     from pipeline.config import validate_run_id
     from pipeline.core.sensors import camera
+    from pipeline.io.tables import read_table
     from pipeline.ops import compare as cmp
     from pipeline.viz.report import compare_report
     from pipeline.workspace import workspace
@@ -262,18 +276,25 @@ def compare(
         need = ("frames.parquet", "scores.parquet", "navigation.parquet", "summary.parquet",
                 "navigation_summary.parquet", "detections.parquet")
         try:
-            paths = {n: store.path(n) for n in need}
+            paths = {n: store.path(n) for n in need}  # each as its stage committed it
         except PipelineError as exc:
             raise PipelineError(f"compare: {exc}") from None
-        d = json.loads((store.run_dir / "config.json").read_text())["detection"]
-        k = camera.intrinsics(camera.FieldOfView.from_config(d["fov_deg"], d["fov_convention"]),
-                              d["image_size_px"])
-        series.append(cmp.frame_series(run, pl.read_parquet(paths["frames.parquet"]),
-                                       pl.read_parquet(paths["scores.parquet"]),
-                                       pl.read_parquet(paths["navigation.parquet"])))
-        windows.append(cmp.window_rows(run, pl.read_parquet(paths["summary.parquet"]),
-                                       pl.read_parquet(paths["navigation_summary.parquet"])))
-        bias = cmp.centre_bias(run, pl.read_parquet(paths["detections.parquet"]), k)
+        entry = store.entry("detect") or {}
+        try:  # the config the detections were made with (the commit record, not config.json)
+            d = entry["run_config"]["detection"]
+            k = camera.intrinsics(camera.FieldOfView.from_config(d["fov_deg"],
+                                                                 d["fov_convention"]),
+                                  d["image_size_px"])
+        except (KeyError, TypeError, ValueError):
+            raise PipelineError(f"compare: {store.stage_dir('detect') / 'stage.json'}: no "
+                                "detection config recorded; rerun `just run` for run "
+                                f"{run!r}") from None
+        tables = {n: read_table(paths[n]) for n in need}
+        series.append(cmp.frame_series(run, tables["frames.parquet"], tables["scores.parquet"],
+                                       tables["navigation.parquet"]))
+        windows.append(cmp.window_rows(run, tables["summary.parquet"],
+                                       tables["navigation_summary.parquet"]))
+        bias = cmp.centre_bias(run, tables["detections.parquet"], k)
         if bias is not None:
             biases.append(bias)
     folder = workspace().runs_dir / validate_run_id(f"compare-{name or '_'.join(runs)}")

@@ -12,8 +12,9 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.campaign import execute
-from pipeline.campaign.execute import campaign_paths, run_campaign
+from pipeline.campaign import execute, one_run
+from pipeline.campaign.execute import run_campaign
+from pipeline.campaign.paths import campaign_paths
 from pipeline.campaign.results import TIMING_COLUMNS, read_table
 from pipeline.campaign.spec import load_spec
 from pipeline.core.sensors.imu import GRADES
@@ -153,7 +154,7 @@ def test_failed_runs_are_recorded_and_a_campaign_resumes(spec_file: str,
                                                          monkeypatch: pytest.MonkeyPatch):
     spec = load_spec(spec_file)
     calls: list[str] = []
-    real = execute.execute_stages
+    real = one_run.execute_stages
 
     def flaky(cfg, store, target):
         calls.append(store.run_id)
@@ -161,7 +162,7 @@ def test_failed_runs_are_recorded_and_a_campaign_resumes(spec_file: str,
             raise RuntimeError("boom in the filter")
         real(cfg, store, target)
 
-    monkeypatch.setattr(execute, "execute_stages", flaky)
+    monkeypatch.setattr(one_run, "execute_stages", flaky)
     facts = run_campaign(spec, local=True)
     assert (facts["done"], facts["ok"]) == (2, 1)
     table = pl.read_parquet(campaign_paths(spec).root / "campaign.parquet")

@@ -143,3 +143,15 @@ def test_index_files_are_trusted_only_when_whole_and_theirs(tmp_path: Path) -> N
     np.savez(buf, **arrays)
     path.write_bytes(buf.getvalue())
     assert store.load(params) is None
+    # damaged with the right key, shapes and ranges: the positions scaled, the pairs reversed
+    for name, damage in (("c_m", lambda a: a * 1.01),
+                         ("pair_ij", lambda a: a[::-1].copy())):
+        bad = {k: v for k, v in np.load(io.BytesIO(data)).items()}
+        assert name in bad, sorted(bad)
+        bad[name] = damage(bad[name])
+        buf = io.BytesIO()
+        np.savez(buf, **bad)
+        path.write_bytes(buf.getvalue())
+        assert store.load(params) is None, name
+    path.write_bytes(data)
+    assert store.load(params) is not None  # the intact file again

@@ -351,3 +351,27 @@ def test_layout_has_the_sun_and_gsd_plots_without_new_origins(tmp_path):
     assert sun["contents"] == [rerun_sun.SUN_ELEVATION_ENTITY]
     assert gsd["contents"] == [rerun_sun.GSD_ENTITY]
     assert sun["origin"] == gsd["origin"] == ["/trajectory"]
+
+
+def test_no_nan_reaches_the_recording_from_false_detections(tmp_path):
+    """A false detection has no true crater (NaN size, true range and position): its points are
+    left out of the 3D views, its camera dot drawn at the UI size; no NaN is logged (the viewer
+    warned "Found NaN radius in entity /world/moon/visible")."""
+    det = detections_table(True)
+    false = np.arange(det.height) % 5 == 0
+    det = det.with_columns(
+        diam_km=pl.when(pl.Series(false)).then(np.nan).otherwise(pl.col("diam_km")),
+        rho_true_m=pl.when(pl.Series(false)).then(np.nan).otherwise(pl.col("rho_true_m")))
+    path = tmp_path / "detection.rrd"
+    with layout.recording("r", path) as rec:
+        detection.log_detection(rec, model(), trajectory_table(), det,
+                                frames_table(det, sun=True))
+    for entity, kind in (("/world/moon/visible", "Points3D"), ("/world/moon/used", "Points3D"),
+                         (f"{CAM}/visible", "Points2D")):
+        cols = columns(path, entity)
+        for part in ("radii", "positions"):
+            values = np.array([v for row in cols[f"{entity}:{kind}:{part}"] for v in row],
+                              dtype=float)
+            assert values.size and np.isfinite(values).all(), (entity, part)
+    visible = columns(path, "/world/moon/visible")["/world/moon/visible:Points3D:positions"]
+    assert sum(len(row) for row in visible) == det.height - int(false.sum())

@@ -38,219 +38,45 @@ holds the catalogue the arrays came from): a shared file system, or the same che
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
-import json
 import os
-import shutil
+import socket
+import subprocess
+import sys
 import time
-import traceback
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import polars as pl
 
-from pipeline.campaign.landing import touchdown_columns
-from pipeline.campaign.spec import CampaignSpec, scenario_toml
+from pipeline.campaign.one_run import run_one
+from pipeline.campaign.paths import (
+    PARTS,
+    CampaignPaths,
+    RunTask,
+    campaign_lock,
+    campaign_paths,
+    is_done,
+    save_result,
+)
+from pipeline.campaign.spec import CampaignSpec
+from pipeline.campaign.toml_writer import scenario_toml
 from pipeline.config import RunConfig, load_config
 from pipeline.engine.executor import Executor
 from pipeline.engine.progress import console, progress_bar
 from pipeline.errors import ConfigError, PipelineError
-from pipeline.io.catalogue import Catalogue, load_recorded_catalogue, share_catalogue
+from pipeline.io.catalogue import Catalogue, load_recorded_catalogue
 from pipeline.io.files import atomic_write_text
-from pipeline.io.rrd import VISUALS_ENV
 from pipeline.io.store import RunStore
-from pipeline.ops.score import NAV_SOURCES, QUANTITY_NAMES, summarize_navigation, windows
 from pipeline.workspace import workspace
 
-METHOD_COLUMNS = ("paper", "joint")  # estimators whose window statistics the table carries
-NAVIGATION_COLUMNS = ("t_s", "status", "altitude_m", *(
-    f"{kind}_{q}_{c}_{unit}" for kind in ("err", "sigma")
-    for q, unit in (("pos", "m"), ("att", "rad")) for c in "xyz"),
-    "nees_pos", "nees_vel", "nees_att")
 # A task holds one CPU (Ray sets OMP_NUM_THREADS=1 for it): its libraries' thread pools too, so
 # that N workers on N cores do not oversubscribe them.
+PROBE_TIMEOUT_S = 3.0  # a Ray address whose port does not answer within this is refused
+RAY_PROBE_TIMEOUT_S = 30.0  # ...and one with no Ray cluster answering within this
+PROGRESS_EVERY_S = 5.0  # a progress line this often when stderr is no terminal
 ONE_THREAD = {"POLARS_MAX_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-PARTS = ("windows", "navigation", "scores", "touchdown")  # a run's collected tables
-# (results/<run>.<part>.parquet)
-
-
-@dataclass(frozen=True)
-class CampaignPaths:
-    root: Path
-
-    @property
-    def runs(self) -> Path:
-        return self.root / "runs"
-
-    @property
-    def results(self) -> Path:
-        return self.root / "results"
-
-    def scenario(self, run_id: str) -> Path:
-        return self.runs / f"{run_id}.toml"
-
-    def done(self, run_id: str) -> Path:
-        return self.results / f"{run_id}.json"
-
-    def part(self, run_id: str, part: str) -> Path:
-        return self.results / f"{run_id}.{part}.parquet"
-
-
-def campaign_paths(spec: CampaignSpec) -> CampaignPaths:
-    return CampaignPaths(workspace().runs_dir / spec.name)
-
-
-@dataclass(frozen=True)
-class RunTask:
-    index: int
-    run_id: str
-    scenario: str  # the run's scenario file
-    scenario_text: str  # its text: a worker on another node writes it there
-    run_key: str  # what its results depend on: a result under another key is not this run's
-
-
-# --- one run (in a Ray worker or in this process) ------------------------------------------------
-
-
-def execute_stages(cfg: RunConfig, store: RunStore, target: str) -> None:
-    """The stages of `just run` up to `target`, on the run's store (a seam for tests)."""
-    from pipeline.stages import DAG
-
-    ex = Executor(DAG)
-    ex.execute(ex.plan(cfg, ex.dag.upstream_closure([target], cfg)), store)
-
-
-def collect(cfg: RunConfig, store: RunStore) -> dict[str, pl.DataFrame]:
-    """A finished run's rows: `windows` (per window: the filter's, the IMU-only path's and each
-    method's statistics), `navigation` (per filter record: errors, sigmas, NEES) and `scores`
-    (per method and frame: errors, sigmas, NEES, the Cramér-Rao bound, the true altitude; scored
-    here when the run stopped at `estimate`). Empty where the run has no such table."""
-    from pipeline.stages.score import frame_scores, read_scoring_inputs
-
-    arts = store.artifacts()
-    out = {part: pl.DataFrame() for part in PARTS}
-    trajectory = (pl.read_parquet(arts["trajectory.parquet"], columns=["frame", "altitude_m"])
-                  if "trajectory.parquet" in arts else None)
-    if "scores.parquet" in arts:
-        scores = pl.read_parquet(arts["scores.parquet"])
-    elif "estimates.parquet" in arts:
-        trajectory_table, detections = read_scoring_inputs(lambda name: arts[name])
-        scores = frame_scores(cfg, trajectory_table, detections, lambda name: arts[name])
-    else:
-        scores = pl.DataFrame()
-    if scores.height and trajectory is not None:
-        out["scores"] = scores.join(trajectory, on="frame", how="left", maintain_order="left")
-    summary = (pl.read_parquet(arts["summary.parquet"]) if "summary.parquet" in arts
-               else pl.DataFrame())
-    if "touchdown.parquet" in arts:  # a closed-loop run
-        out["touchdown"] = touchdown_columns(pl.read_parquet(arts["touchdown.parquet"]))
-    if "navigation.parquet" not in arts:
-        return out
-    nav = pl.read_parquet(arts["navigation.parquet"])
-    out["navigation"] = nav.select(NAVIGATION_COLUMNS)
-    if "navigation_summary.parquet" in arts:
-        nav_summary = pl.read_parquet(arts["navigation_summary.parquet"])
-    else:
-        t_impact = json.loads(arts["trajectory.json"].read_text())["t_impact_s"]
-        nav_summary = summarize_navigation(nav, windows(cfg.scoring, t_impact))
-    rows = []
-    for w in nav_summary.filter(pl.col("source") == "filter").iter_rows(named=True):
-        row: dict[str, Any] = {"window": w["window"], "start_s": w["start_s"],
-                               "end_s": w["end_s"]}
-        for source in NAV_SOURCES:
-            s = nav_summary.filter((pl.col("source") == source)
-                                   & (pl.col("window") == w["window"]))
-            r = s.row(0, named=True) if s.height else {}
-            for c in "xyz":
-                row[f"{source}_rmse_{c}_m"] = r.get(f"rmse_{c}_m")
-        row.update(filter_share_ok=w["share_ok"], filter_share_within_3sigma=w[
-            "share_within_3sigma"], filter_err_last_m=w["err_last_m"],
-            filter_mean_nees_pos=w["mean_nees_pos"], filter_mean_nees_vel=w["mean_nees_vel"],
-            filter_mean_nees_att=w["mean_nees_att"], filter_records=w["records"])
-        for method in METHOD_COLUMNS:
-            m = (summary.filter((pl.col("method") == method) & (pl.col("window") == w["window"]))
-                 if summary.height else summary)
-            v = dict(zip(m["quantity"].to_list(), m["rmse"].to_list(), strict=True)) \
-                if m.height else {}
-            for q in QUANTITY_NAMES:
-                row[f"{method}_rmse_{q}"] = v.get(q)
-            row[f"{method}_share_ok"] = m["share_estimated"][0] if m.height else None
-            row[f"{method}_mean_nees"] = m["mean_nees"][0] if m.height else None
-        rows.append(row)
-    out["windows"] = pl.DataFrame(rows, infer_schema_length=None)
-    return out
-
-
-def run_one(task: RunTask, shared: dict[str, Any], catalogue: Catalogue | None = None
-            ) -> dict[str, Any]:
-    """Run one campaign run; never raises for the run's own failure: returns its status, error
-    (one line), wall time and collected tables. `catalogue`: the shared catalogue's arrays."""
-    t0 = time.perf_counter()
-    status, error = "ok", ""
-    parts = {part: pl.DataFrame() for part in PARTS}
-    runs_dir = Path(shared["runs_dir"])
-    store = RunStore(task.run_id, runs_dir)
-    try:
-        runs_dir.mkdir(parents=True, exist_ok=True)
-        scenario = Path(task.scenario)
-        if not scenario.is_file() or scenario.read_text() != task.scenario_text:
-            atomic_write_text(scenario, task.scenario_text)  # a node without the driver's files
-        if catalogue is not None:
-            share_catalogue(catalogue)
-        with _environment({"CRATER_NAV_ROOT": shared["root"],
-                           VISUALS_ENV: "on" if shared["recordings"] else "off"}), \
-                open(runs_dir / f"{task.run_id}.log", "w") as f, \
-                contextlib.redirect_stdout(f), contextlib.redirect_stderr(f):
-            try:
-                cfg = load_config(task.scenario, task.run_id)
-                execute_stages(cfg, store, shared["target"])
-                parts = collect(cfg, store)
-            except Exception:
-                traceback.print_exc(file=f)
-                raise
-    except Exception as exc:
-        status = "failed"
-        error = (f"{type(exc).__name__}: {exc}".splitlines() or [""])[0][:500]
-    if status == "ok" and not shared["keep_runs"]:
-        shutil.rmtree(store.run_dir, ignore_errors=True)
-    return {"index": task.index, "run_id": task.run_id, "status": status, "error": error,
-            "wall_s": time.perf_counter() - t0, "node": _node(),
-            "run_key": task.run_key, **parts}
-
-
-@contextlib.contextmanager
-def _environment(values: dict[str, str]) -> Iterator[None]:
-    """Environment variables set for the block (the workspace found again), then restored."""
-    before = {k: os.environ.get(k) for k in values}
-    os.environ.update(values)
-    workspace.cache_clear()
-    try:
-        yield
-    finally:
-        for k, v in before.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-        workspace.cache_clear()
-
-
-def _node() -> str:
-    """The Ray node id in a Ray worker, else the host name."""
-    try:
-        import ray
-
-        if ray.is_initialized():
-            return str(ray.get_runtime_context().get_node_id())
-    except ImportError:
-        pass
-    return os.uname().nodename
-
-
-# --- the driver ----------------------------------------------------------------------------------
 
 
 def _failed_row(task: RunTask, status: str, error: str) -> dict[str, Any]:
@@ -263,31 +89,43 @@ def _failed_row(task: RunTask, status: str, error: str) -> dict[str, Any]:
 def prepare(spec: CampaignSpec, paths: CampaignPaths) -> tuple[list[RunTask], list[dict], RunConfig
                                                                 | None]:
     """Each run's scenario file, written and validated: the tasks to run, the rows of runs whose
-    draw is not a valid config (`invalid_config`), and the first valid config."""
+    draw is not a valid config (`invalid_config`: a per-run status, whichever run it is), and the
+    first valid config. Shows its progress (a line every few seconds without a terminal)."""
     from pipeline.stages import DAG
 
     paths.runs.mkdir(parents=True, exist_ok=True)
     paths.results.mkdir(parents=True, exist_ok=True)
     ex = Executor(DAG)
     tasks, invalid, first = [], [], None
-    for i in range(spec.runs):
-        run_id = spec.run_id(i)
-        path = paths.scenario(run_id)
-        header = (f"campaign {spec.name} ({spec.path}), run {i} of {spec.runs}, root seed "
-                  f"{spec.seed}: drawn values and the campaign's overrides over `{spec.base}`.\n"
-                  f"Rerun it alone, with its recordings: just run {path}")
-        text = scenario_toml(spec.base, spec.overrides_for(i), header)
-        if not path.is_file() or path.read_text() != text:
-            atomic_write_text(path, text)
-        try:
-            cfg = load_config(str(path), run_id)
-        except ConfigError as exc:
-            key = hashlib.sha256(f"invalid\n{exc}".encode()).hexdigest()[:16]
-            invalid.append(_failed_row(RunTask(i, run_id, str(path), text, key),
-                                       "invalid_config", str(exc)))
-            continue
-        first = first or cfg
-        tasks.append(RunTask(i, run_id, str(path), text, run_key(ex, cfg, spec)))
+    said = time.monotonic()
+    with progress_bar(f"campaign {spec.name}: preparing the runs' configs", spec.runs) as advance:
+        for i in range(spec.runs):
+            if not console.is_terminal and time.monotonic() - said > PROGRESS_EVERY_S:
+                said = time.monotonic()
+                console.print(f"campaign {spec.name}: prepared {i:,} of {spec.runs:,} runs' "
+                              "configs")
+            run_id = spec.run_id(i)
+            path = paths.scenario(run_id)
+            header = (f"campaign {spec.name} ({spec.path}), run {i} of {spec.runs}, root seed "
+                      f"{spec.seed}: drawn values and the campaign's overrides over "
+                      f"`{spec.base}`.\nRerun it alone, with its recordings: just run {path}")
+            text = ""
+            try:
+                text = scenario_toml(spec.base, spec.overrides_for(i), header)
+                if not path.is_file() or path.read_text() != text:
+                    atomic_write_text(path, text)
+                cfg = load_config(str(path), run_id)
+            except (ConfigError, ValueError, TypeError, OverflowError) as exc:
+                error = str(exc) if isinstance(exc, ConfigError) else \
+                    f"{path}: {type(exc).__name__}: {exc}"
+                key = hashlib.sha256(f"invalid\n{error}".encode()).hexdigest()[:16]
+                invalid.append(_failed_row(RunTask(i, run_id, str(path), text, key),
+                                           "invalid_config", error))
+                advance()
+                continue
+            first = first or cfg
+            tasks.append(RunTask(i, run_id, str(path), text, run_key(ex, cfg, spec)))
+            advance()
     return tasks, invalid, first
 
 
@@ -298,45 +136,6 @@ def run_key(ex: Executor, cfg: RunConfig, spec: CampaignSpec) -> str:
                           .encode()).hexdigest()[:16]
 
 
-def save_result(paths: CampaignPaths, result: dict[str, Any], draws: dict[str, Any]) -> None:
-    """A run's tables, then its .json (the marker that it is done)."""
-    rid = result["run_id"]
-    for part in PARTS:
-        target = paths.part(rid, part)
-        tmp = target.with_name(f".tmp-{os.getpid()}-{target.name}")
-        result[part].write_parquet(tmp)
-        os.replace(tmp, target)
-    meta = {k: result[k] for k in ("index", "run_id", "status", "error", "wall_s", "node",
-                                   "run_key")}
-    atomic_write_text(paths.done(rid), json.dumps(
-        {**meta, "seed": draws["seed"], "draws": draws}, indent=1, default=str) + "\n")
-
-
-def is_done(paths: CampaignPaths, task: RunTask, retry_failed: bool) -> bool:
-    """Whether run `task` has a result under its current key; one lost with its worker
-    (`crashed`) is not, nor, with `retry_failed`, one that failed."""
-    p = paths.done(task.run_id)
-    if not p.is_file():
-        return False
-    try:
-        meta = json.loads(p.read_text())
-    except (OSError, ValueError):
-        return False
-    if meta.get("run_key") != task.run_key or meta.get("status") == "crashed":
-        return False
-    return not (retry_failed and meta.get("status") != "ok")
-
-
-@contextlib.contextmanager
-def campaign_lock(paths: CampaignPaths) -> Iterator[None]:
-    paths.root.mkdir(parents=True, exist_ok=True)
-    with open(paths.root / ".lock", "w") as f:
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise PipelineError(f"campaign {paths.root.name}: another command is running it "
-                                f"({paths.root / '.lock'})") from None
-        yield
 
 
 class _Tally:
@@ -370,6 +169,8 @@ def run_campaign(spec: CampaignSpec, *, address: str | None = None, workers: int
         raise PipelineError(f"{paths.root}: the folder of an ordinary run (manifest.json), not a "
                             "campaign's (a sweep before sweeps were campaigns?); remove it or "
                             "give the campaign another name")
+    if not local:
+        probe_ray_address(address)
     t0 = time.perf_counter()
     with campaign_lock(paths):
         atomic_write_text(paths.root / "spec.toml", spec.text)
@@ -414,6 +215,55 @@ def run_campaign(spec: CampaignSpec, *, address: str | None = None, workers: int
             "wall_s": wall, **execution, **facts}
 
 
+def probe_ray_address(address: str | None) -> None:
+    """A Ray address given (`--address`, else RAY_ADDRESS) answers, else PipelineError in one
+    line (ray.init retries one that does not for ever): its port within PROBE_TIMEOUT_S, then
+    a Ray cluster behind it, asked in a child process killed after RAY_PROBE_TIMEOUT_S (a port
+    may answer that is no Ray: a proxy). "auto" and "local" are Ray's own to resolve."""
+    given = address if address is not None else os.environ.get("RAY_ADDRESS")
+    where = "--address" if address is not None else "RAY_ADDRESS"
+    if not given or given in ("auto", "local"):
+        return
+    hostport = given.split("://", 1)[-1].rstrip("/")
+    host, _, port = hostport.rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise PipelineError(f"{where} {given!r}: expected host:port (or ray://host:port)")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=PROBE_TIMEOUT_S).close()
+    except OSError as exc:
+        raise PipelineError(f"{where} {given!r}: nothing answers at {host}:{port} within "
+                            f"{PROBE_TIMEOUT_S:g} s ({exc.strerror or exc}); is the Ray head "
+                            "running (`ray start --head`)?") from None
+    code = ("import sys, ray\nray.init(address=sys.argv[1], include_dashboard=False, "
+            "log_to_driver=False, configure_logging=False)\nray.cluster_resources()\n")
+    try:
+        done = subprocess.run([sys.executable, "-c", code, given], capture_output=True,
+                              text=True, timeout=RAY_PROBE_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        raise PipelineError(f"{where} {given!r}: {host}:{port} answers, but no Ray cluster "
+                            f"within {RAY_PROBE_TIMEOUT_S:g} s") from None
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["(no message)"])[-1][:300]
+        raise PipelineError(f"{where} {given!r}: no Ray cluster there ({last})")
+
+
+def clamp_workers(workers: int | None, cores: int | None) -> int | None:
+    """`workers` at most the machine's cores (a local Ray instance), said in one line when
+    clamped."""
+    if workers is None or cores is None or workers <= cores:
+        return workers
+    console.print(f"--workers {workers}: this machine has {cores} cores; running {cores} at once")
+    return cores
+
+
+def _code_path() -> str:
+    """PYTHONPATH for the workers: the folder holding this `pipeline` package first (a worker
+    runs the driver's code, not another checkout's installed one), then the driver's."""
+    here = str(Path(__file__).resolve().parents[2])
+    rest = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p and p != here]
+    return os.pathsep.join([here, *rest])
+
+
 def _run_on_ray(pending: list[RunTask], shared: dict[str, Any], catalogue: Catalogue | None,
                 save: Callable[[dict[str, Any]], None], address: str | None,
                 workers: int | None, name: str) -> tuple[int, float]:
@@ -425,9 +275,10 @@ def _run_on_ray(pending: list[RunTask], shared: dict[str, Any], catalogue: Catal
     if not ray.is_initialized():
         kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
                                   "configure_logging": False,
-                                  "runtime_env": {"env_vars": ONE_THREAD}}
+                                  "runtime_env": {"env_vars": {**ONE_THREAD,
+                                                               "PYTHONPATH": _code_path()}}}
         if address is None and not os.environ.get("RAY_ADDRESS"):
-            kwargs["num_cpus"] = workers or os.cpu_count() or 1
+            kwargs["num_cpus"] = clamp_workers(workers, os.cpu_count()) or os.cpu_count() or 1
         ray.init(address=address, **kwargs)
         started = True
     try:

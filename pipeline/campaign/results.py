@@ -39,20 +39,17 @@ import duckdb
 import numpy as np
 import polars as pl
 import pyarrow.parquet as pq
-import rerun as rr
 from scipy import stats
 
-from pipeline.campaign.execute import CampaignPaths
+from pipeline.campaign.figures import NEES_DOF, PERCENTILES, figures, log_envelopes
 from pipeline.campaign.landing import FIGURE as LANDING_FIGURE
 from pipeline.campaign.landing import landing_section
+from pipeline.campaign.paths import CampaignPaths, damaged_part, read_done
+from pipeline.campaign.report import report_text
 from pipeline.campaign.spec import CampaignSpec
-from pipeline.config import load_config
-from pipeline.io.rrd import recording_file
+from pipeline.engine.progress import console
 
-PERCENTILES = (50.0, 95.0, 99.7)
 TIMING_COLUMNS = ("wall_s", "node")  # vary from one execution to the next
-ENVELOPE_ALTITUDES_KM = (200.0, 100.0, 50.0, 20.0, 10.0, 5.0, 2.0, 1.0)  # report table rows
-NEES_DOF = 3  # position NEES
 PER_FRAME = ("navigation", "scores")  # the runs' per-frame parts, tables of campaign.duckdb
 
 
@@ -76,15 +73,20 @@ class Collected:
 
 
 def collect_results(spec: CampaignSpec, paths: CampaignPaths) -> Collected:
-    """The campaign table (sorted by run) and where each run's per-frame rows are."""
+    """The campaign table (sorted by run) and where each run's per-frame rows are; a run whose
+    parts are not as saved is left out, said in one line (the next command reruns it)."""
     rows: list[pl.DataFrame] = []
     files: dict[str, list[tuple[int, str, str]]] = {part: [] for part in PER_FRAME}
     for i in range(spec.runs):
         rid = spec.run_id(i)
-        done = paths.done(rid)
-        if not done.is_file():
+        meta = read_done(paths, rid)
+        if meta is None:
             continue
-        meta = json.loads(done.read_text())
+        damage = damaged_part(paths, meta)
+        if damage is not None:
+            console.print(f"campaign {spec.name}: {damage}; run {rid} left out (the next "
+                          "`just campaign` reruns it)")
+            continue
         head = pl.DataFrame([{"run": i, "run_id": rid, "seed": meta["seed"],
                               **_draw_columns(meta["draws"]), "status": meta["status"],
                               "error": meta["error"], "wall_s": meta["wall_s"],
@@ -192,118 +194,6 @@ def _with_nees_bounds(env: pl.DataFrame) -> pl.DataFrame:
     return env.with_columns(nees_lo=pl.Series(lo), nees_hi=pl.Series(hi))
 
 
-def _fmt(x: Any) -> str:
-    if x is None or (isinstance(x, float) and not np.isfinite(x)):
-        return "-"
-    return f"{x:.4g}" if isinstance(x, float) else str(x)
-
-
-def _md_table(df: pl.DataFrame) -> str:
-    head = "| " + " | ".join(df.columns) + " |\n|" + "---|" * len(df.columns) + "\n"
-    return head + "\n".join("| " + " | ".join(_fmt(v) for v in row) + " |"
-                            for row in df.iter_rows()) + "\n"
-
-
-ENVELOPE_LINES = (("p50", "50 %", "-"), ("p95", "95 %", "-"), ("p99.7", "99.7 %", "-"),
-                  ("rms3", "3 x RMS over runs", "-"))
-
-
-def _log_axis(axis: Any, set_scale: Any, values: np.ndarray) -> None:
-    """A log axis with plain tick labels when `values` span more than a decade."""
-    from matplotlib.ticker import FuncFormatter, NullFormatter
-
-    v = values[np.isfinite(values) & (values > 0)]
-    if v.size and v.max() > 10 * v.min():
-        set_scale("log")
-        axis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
-        axis.set_minor_formatter(NullFormatter())
-
-
-def _figures(env: pl.DataFrame, folder: Path) -> list[str]:
-    """Envelopes against time and altitude (a panel per source, position above attitude) and the
-    NEES with its bounds."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    if not env.height:
-        return []
-    sources = env["source"].unique(maintain_order=True).to_list()
-    names = []
-    for axis, xlabel, name in (("t_s", "time since apoapsis (s)", "envelope_time.png"),
-                               ("altitude_km", "true altitude (km)", "envelope_altitude.png")):
-        fig, axes = plt.subplots(2, len(sources), figsize=(4.5 * len(sources), 7), squeeze=False,
-                                 sharex="col")
-        for j, source in enumerate(sources):
-            g = env.filter(pl.col("source") == source).with_columns(
-                altitude_km=pl.col("altitude_m") / 1e3)
-            x = g[axis].to_numpy()
-            for i, (q, unit, what) in enumerate((("pos", "m", "position"),
-                                                 ("att", "deg", "attitude"))):
-                ax = axes[i, j]
-                for key, label, ls in ENVELOPE_LINES:
-                    ax.plot(x, g[f"{q}_{key}_{unit}"].to_numpy(), ls, lw=1, label=label)
-                if q == "pos":
-                    ax.plot(x, g["pos_sigma3_m"].to_numpy(), "k--", lw=1,
-                            label="own 3 sigma (RMS over runs)")
-                ax.set(ylabel=f"{what} error norm ({unit})", title=f"{source}: {what}")
-                _log_axis(ax.yaxis, ax.set_yscale, g[f"{q}_p50_{unit}"].to_numpy())
-                if axis == "altitude_km":  # descending: the descent reads left to right
-                    _log_axis(ax.xaxis, ax.set_xscale, x)
-                    ax.invert_xaxis()
-                ax.grid(True, which="both", alpha=0.3)
-            axes[1, j].set_xlabel(xlabel)
-        axes[0, 0].legend(fontsize=8)
-        fig.tight_layout()
-        fig.savefig(folder / name, dpi=90)
-        plt.close(fig)
-        names.append(name)
-    fig, axes = plt.subplots(1, len(sources), figsize=(4.5 * len(sources), 3.5), squeeze=False)
-    for j, source in enumerate(sources):
-        g = env.filter(pl.col("source") == source)
-        t = g["t_s"].to_numpy()
-        ax = axes[0, j]
-        ax.plot(t, g["mean_nees_pos"].to_numpy(), lw=1, label="mean over runs")
-        ax.fill_between(t, g["nees_lo"].to_numpy(), g["nees_hi"].to_numpy(), alpha=0.3,
-                        label="95 % chi-square bounds")
-        ax.axhline(NEES_DOF, color="k", ls="--", lw=1, label=f"{NEES_DOF} (consistent)")
-        ax.set(xlabel="time since apoapsis (s)", ylabel="position NEES (-)",
-               title=f"{source}: consistency")
-        _log_axis(ax.yaxis, ax.set_yscale, g["mean_nees_pos"].to_numpy())
-        ax.grid(True, which="both", alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(folder / "nees.png", dpi=90)
-    plt.close(fig)
-    return [*names, "nees.png"]
-
-
-def log_envelopes(path: Path, name: str, env: pl.DataFrame) -> None:
-    """campaign.rrd: per source, the envelopes and the NEES as scalar series on the `sim_time`
-    and `altitude_m` timelines."""
-    with recording_file("crater_nav_campaign", f"campaign-{name}", path) as rec:
-        for (source,), g in env.group_by("source", maintain_order=True):
-            times = [rr.TimeColumn("sim_time", duration=g["t_s"].to_numpy()),
-                     rr.TimeColumn("altitude_m", sequence=np.round(
-                         np.nan_to_num(g["altitude_m"].to_numpy())).astype(np.int64))]
-            series = [(f"position_m/{k.replace('.', '_')}",
-                       f"{source} |position error| {label} (m)", g[f"pos_{k}_m"])
-                      for k, label, _ in ENVELOPE_LINES]
-            series += [("position_m/sigma3", f"{source} own 3 sigma (m)", g["pos_sigma3_m"])]
-            series += [(f"attitude_deg/{k.replace('.', '_')}",
-                        f"{source} |attitude error| {label} (deg)", g[f"att_{k}_deg"])
-                       for k, label, _ in ENVELOPE_LINES]
-            series += [("nees_pos/mean", f"{source} position NEES, mean over runs",
-                        g["mean_nees_pos"]), ("nees_pos/lo", "95 % lower bound", g["nees_lo"]),
-                       ("nees_pos/hi", "95 % upper bound", g["nees_hi"])]
-            for entity, label, values in series:
-                path_ = f"/envelopes/{source}/{entity}"
-                rec.send_columns(path_, indexes=times, columns=rr.Scalars.columns(
-                    scalars=values.cast(pl.Float64).fill_null(np.nan).to_numpy()))
-                rec.log(path_, rr.SeriesLines(names=label), static=True)
-
-
 OUTPUTS = ("campaign.parquet", "campaign.duckdb", "campaign.rrd", LANDING_FIGURE,
            "envelope_time.png", "envelope_altitude.png", "nees.png", "report.md", "campaign.json")
 
@@ -323,12 +213,12 @@ def write_outputs(spec: CampaignSpec, paths: CampaignPaths,
         env = build_database(stage / "campaign.duckdb", collected)
         if env.height:
             log_envelopes(stage / "campaign.rrd", spec.name, env)
-        figures = _figures(env, stage)
+        figure_names = figures(env, stage)
         per_run_table = (collected.campaign.unique("run", keep="first", maintain_order=True)
                          if collected.campaign.height else collected.campaign)
         landing = landing_section(per_run_table, stage)
-        (stage / "report.md").write_text(_report(spec, paths, collected.campaign, env, figures,
-                                                 execution, landing))
+        (stage / "report.md").write_text(report_text(spec, paths, collected.campaign, env,
+                                                     figure_names, execution, landing))
         per_run = collected.campaign.unique("run", keep="first", maintain_order=True) \
             if collected.campaign.height else collected.campaign
         ok = int((per_run["status"] == "ok").sum()) if per_run.height else 0
@@ -348,133 +238,3 @@ def write_outputs(spec: CampaignSpec, paths: CampaignPaths,
             "tables": {"campaign": collected.campaign, "envelopes": env}}
 
 
-def _report_window(paths: CampaignPaths, table: pl.DataFrame) -> str | None:
-    """The runs' table window (scoring.table_window) when they have filter records in it, else
-    the first window that has some."""
-    if "window" not in table.columns or "filter_rmse_x_m" not in table.columns:
-        return None
-    with_data = table.filter(pl.col("filter_rmse_x_m").is_not_nan()
-                             & pl.col("filter_rmse_x_m").is_not_null())
-    names = with_data["window"].unique(maintain_order=True).to_list()
-    first = table["run_id"][0]  # the runs' own table window (the base's, or the overrides')
-    preferred = load_config(str(paths.scenario(first)), first).scoring.table_window
-    return preferred if preferred in names else (names[0] if names else None)
-
-
-def _envelope_table(env: pl.DataFrame) -> pl.DataFrame:
-    """The envelopes at the record nearest each of ENVELOPE_ALTITUDES_KM inside the records'
-    altitudes (per source), or at 5 records evenly spread when fewer than 3 of them are."""
-    rows = []
-    for (source,), g in env.group_by("source", maintain_order=True):
-        alt = g["altitude_m"].to_numpy() / 1e3
-        if not np.isfinite(alt).any():
-            continue
-        lo, hi = np.nanmin(alt), np.nanmax(alt)
-        levels = [a for a in ENVELOPE_ALTITUDES_KM if lo <= a <= hi]
-        at = ([int(np.nanargmin(np.abs(alt - a))) for a in levels] if len(levels) >= 3
-              else np.unique(np.linspace(0, g.height - 1, 5).round().astype(int)).tolist())
-        for i in at:
-            r = g.row(i, named=True)
-            rows.append({"source": source, "altitude_km": r["altitude_m"] / 1e3, "t_s": r["t_s"],
-                         "runs": r["runs"], "pos_p50_m": r["pos_p50_m"],
-                         "pos_p99.7_m": r["pos_p99.7_m"], "pos_rms3_m": r["pos_rms3_m"],
-                         "pos_sigma3_m": r["pos_sigma3_m"], "att_p99.7_deg": r["att_p99.7_deg"],
-                         "mean_nees_pos": r["mean_nees_pos"], "nees_lo": r["nees_lo"],
-                         "nees_hi": r["nees_hi"]})
-    return pl.DataFrame(rows)
-
-
-def _report(spec: CampaignSpec, paths: CampaignPaths, table: pl.DataFrame, env: pl.DataFrame,
-            figures: list[str], execution: dict[str, Any] | None, landing: str = "") -> str:
-    per_run = table.unique("run", keep="first", maintain_order=True) if table.height else table
-    n = per_run.height
-    lines = [f"# Campaign `{spec.name}`", "",
-             f"Spec `{spec.path}`: {spec.runs} runs of `{spec.base}` up to `{spec.target}`, root "
-             f"seed {spec.seed}; {n} recorded.", ""]
-    if n:
-        counts = per_run["status"].value_counts(sort=True)
-        ok = int((per_run["status"] == "ok").sum())
-        lines += [f"**Success rate: {ok}/{n} runs ok ({ok / n:.1%}).** Statuses: "
-                  + ", ".join(f"{s} {c}" for s, c in counts.iter_rows()) + ".", ""]
-        wall = per_run.filter(pl.col("status") == "ok")["wall_s"].to_numpy()
-        if wall.size:
-            lines += [f"Wall time per run: median {np.median(wall):.2f} s, max "
-                      f"{wall.max():.2f} s.", ""]
-        if execution and execution["ran"]:
-            e = execution
-            lines += [f"This command ran {e['ran']} runs in {e['runs_s']:.1f} s on "
-                      f"{e['workers']} worker(s): {60 * e['ran'] / e['runs_s']:.2f} runs per "
-                      "minute.", ""]
-    lines += ["## Dispersions", "", "Built in: `seed` (per run, from the root seed)"
-              + (", `detection.world_seed` (catalogue errors)" if spec.catalogue_errors else "")
-              + (", `trajectory.jitter_seed`" if spec.jitter else "")
-              + (f", the true camera mounting ~ nominal {list(spec.nominal_mounting_deg)} + "
-                 f"N(0, {spec.mounting_sigma_deg:g} deg) per axis (the navigator assumes the "
-                 "nominal)" if spec.mounting_sigma_deg > 0 else "") + ".", ""]
-    for d in spec.dispersions:
-        what = {"normal": lambda d: f"normal(mean {d.params[0]:g}, sigma {d.params[1]:g})",
-                "uniform": lambda d: f"uniform({d.params[0]:g}, {d.params[1]:g})",
-                "choice": lambda d: f"choice of {list(d.values)}",
-                "grid": lambda d: f"grid over {list(d.values)}"}[d.kind](d)
-        lines.append(f"- `{d.key}`: {what}")
-    lines.append("")
-    if landing:
-        lines += [landing, ""]
-    if env.height:
-        lines += ["## Error envelopes over the runs", "",
-                  "Per source (the filter; each estimator on its `ok` frames) and record: the "
-                  "50/95/99.7 percentiles over runs of the position and attitude error norms "
-                  "(attitude: the filter's error rotation angle; an estimator's norm of its "
-                  "roll, pitch and yaw errors, the same to first order), "
-                  "3x their RMS over runs (the 3-sigma envelope), the source's own 3-sigma (RMS "
-                  "over runs), and the position NEES (3 dof) averaged over runs with its 95 % "
-                  "chi-square bounds chi2(3N)/N. Table: the record nearest each altitude.", ""]
-        lines += [f"![{f}]({f})" for f in figures] + [""]
-        lines += [_md_table(_envelope_table(env)), ""]
-        inside = env.filter(pl.col("mean_nees_pos").is_not_nan())
-        for (source,), g in inside.group_by("source", maintain_order=True):
-            m = g["mean_nees_pos"].to_numpy()
-            share = float(np.mean((m >= g["nees_lo"].to_numpy()) & (m <= g["nees_hi"].to_numpy())))
-            lines.append(f"- {source}: mean position NEES {np.mean(m):.3g} (time average), "
-                         f"inside its 95 % bounds at {share:.0%} of {m.size:,} records")
-        lines.append("")
-    window = _report_window(paths, table)
-    ok_rows = table.filter(pl.col("status") == "ok") if n else table
-    if window is not None and ok_rows.height:
-        w = ok_rows.filter(pl.col("window") == window).with_columns(
-            filter_rmse_m=(pl.col("filter_rmse_x_m") ** 2 + pl.col("filter_rmse_y_m") ** 2
-                           + pl.col("filter_rmse_z_m") ** 2).sqrt())
-        stat_rows = []
-        for col in ("filter_rmse_m", "filter_rmse_x_m", "filter_rmse_y_m", "filter_rmse_z_m",
-                    "filter_mean_nees_pos", "filter_share_within_3sigma",
-                    *[c for c in w.columns if c.endswith(("_rmse_x_m", "_rmse_y_m", "_rmse_z_m"))
-                      and c.split("_")[0] in ("paper", "joint")]):
-            v = w[col].cast(pl.Float64).drop_nulls().drop_nans().to_numpy()
-            if v.size:
-                stat_rows.append({"quantity": col, "runs": v.size,
-                                  **{f"p{p:g}": float(np.percentile(v, p)) for p in PERCENTILES},
-                                  "max": float(v.max())})
-        lines += [f"## Window {window}: per-run statistics, percentiles over runs", "",
-                  _md_table(pl.DataFrame(stat_rows)), ""]
-        worst = w.filter(pl.col("filter_rmse_m").is_not_nan()).sort(
-            "filter_rmse_m", descending=True, nulls_last=True).head(5)
-        lines += ["## Worst runs (filter position RMSE in the window)", "",
-                  "Each reruns alone, with its recordings, from its recorded config:", ""]
-        for r in worst.iter_rows(named=True):
-            lines.append(f"- run {r['run']} (`{r['run_id']}`, seed {r['seed']}): "
-                         f"{_fmt(r['filter_rmse_m'])} m; `just run "
-                         f"{paths.scenario(r['run_id'])}`")
-        lines.append("")
-    failed = per_run.filter(pl.col("status") != "ok") if n else per_run
-    if failed.height:
-        lines += ["## Runs not ok", ""]
-        for r in failed.iter_rows(named=True):
-            lines.append(f"- run {r['run']} (`{r['run_id']}`): {r['status']}: {r['error']} "
-                         f"(log `{paths.runs / (r['run_id'] + '.log')}`; rerun: `just run "
-                         f"{paths.scenario(r['run_id'])}`)")
-        lines.append("")
-    lines += ["Tables: `campaign.parquet` (per run and window); `campaign.duckdb` (`campaign`, "
-              "`navigation`, `scores`, `envelopes`): `just sql --campaign "
-              f"{spec.name} \"SELECT ... FROM campaign.scores\"`. Envelopes as time series: "
-              f"`rerun {paths.root / 'campaign.rrd'}`.", ""]
-    return "\n".join(lines)

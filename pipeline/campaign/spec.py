@@ -65,6 +65,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.campaign.reach import check_base, set_dotted
 from pipeline.config import MAX_SEED, RunConfig, validate_run_id, validate_scenario_name
 from pipeline.config.checks import plain_name
 from pipeline.errors import ConfigError
@@ -111,6 +112,7 @@ class CampaignSpec:
     jitter: bool
     mounting_sigma_deg: float
     nominal_mounting_deg: tuple[float, ...]  # the base's camera mounting (z, y, x, deg)
+    table_window: str  # the report's window (scoring.table_window of the base and overrides)
     overrides: dict[str, Any]
     dispersions: tuple[Dispersion, ...]
     text: str  # the spec as TOML (a sweep's: made from its scenario)
@@ -152,7 +154,7 @@ class CampaignSpec:
         """The nested overrides of run `index`: the spec's fixed overrides, then its draws."""
         over = copy.deepcopy(self.overrides)
         for key, value in self.draws(index).items():
-            _set_dotted(over, key, value)
+            set_dotted(over, key, value)
         return over
 
 
@@ -169,13 +171,6 @@ def _seed_of(root: int, index: int, key: str) -> int:
     ss = (np.random.SeedSequence(root, spawn_key=(index,)) if key == "seed"
           else np.random.SeedSequence(root, spawn_key=(index, _stream_key(key))))
     return int(ss.generate_state(1, np.uint64)[0] >> np.uint64(1))
-
-
-def _set_dotted(d: dict[str, Any], key: str, value: Any) -> None:
-    *parents, last = key.split(".")
-    for p in parents:
-        d = d.setdefault(p, {})
-    d[last] = value
 
 
 def field_type(key: str) -> Any:
@@ -214,6 +209,13 @@ def _check_value(value: Any, tp: Any, key: str) -> None:
     if not ok:
         name = getattr(base, "__name__", str(base))
         raise ConfigError(f"{key}: value {value!r} is not a {name}")
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Two grid values the config takes as the same (5 and 5.0; not True and 1)."""
+    return (type(a) is type(b) and a == b) or (
+        isinstance(a, int | float) and isinstance(b, int | float)
+        and not isinstance(a, bool) and not isinstance(b, bool) and a == b)
 
 
 def _number(value: Any, key: str) -> float:
@@ -256,16 +258,21 @@ def _dispersion(key: str, raw: Any) -> Dispersion:
                               f"{getattr(tp, '__name__', tp)} (use choice or values)")
         a, b = (("mean", "sigma") if kind == "normal" else ("low", "high"))
         pa, pb = _number(raw[a], f"{where}.{a}"), _number(raw[b], f"{where}.{b}")
-        if kind == "normal" and pb < 0:
-            raise ConfigError(f"{where}.sigma = {pb:g}: must be >= 0")
-        if kind == "uniform" and pb < pa:
-            raise ConfigError(f"{where}.high = {pb:g}: must be >= low ({pa:g})")
+        if kind == "normal" and pb <= 0:
+            raise ConfigError(f"{where}.sigma = {pb:g}: must be > 0 (a fixed value is an "
+                              "override: every run would draw the same)")
+        if kind == "uniform" and pb <= pa:
+            raise ConfigError(f"{where}.high = {pb:g}: must be > low ({pa:g}; a fixed value is "
+                              "an override: every run would draw the same)")
         return Dispersion(key, kind, (pa, pb))
     values = raw["values"]
     if not isinstance(values, list) or not values:
         raise ConfigError(f"{where}.values: expected a non-empty list, got {values!r}")
     for i, v in enumerate(values):
         _check_value(v, tp, f"{where}.values[{i}]")
+        if kind == "grid" and any(_same(v, w) for w in values[:i]):
+            raise ConfigError(f"{where}.values[{i}] = {v!r}: repeats a value of the grid (its "
+                              "runs would repeat others' draws, counted as independent)")
     return Dispersion(key, kind, values=tuple(values))
 
 
@@ -295,10 +302,16 @@ def _load(path: Path) -> CampaignSpec:
         known = sorted(q.stem for q in campaigns_dir().glob("*.toml"))
         raise ConfigError(f"campaign spec not found (known campaigns: {known})")
     try:
-        data = tomllib.loads(path.read_text())
+        text = path.read_bytes().decode("utf-8")
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"not valid TOML: {exc}") from None
-    return spec_from_data(data, validate_run_id(path.stem), path, path.read_text())
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset "
+                          f"{exc.start})") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read the spec: {exc.strerror or exc}") from None
+    return spec_from_data(data, validate_run_id(path.stem), path, text)
 
 
 def spec_from_data(data: dict[str, Any], name: str, path: Path, text: str) -> CampaignSpec:
@@ -360,7 +373,8 @@ def spec_from_data(data: dict[str, Any], name: str, path: Path, text: str) -> Ca
     for d in dispersions:
         if built_in.get(d.key):
             raise ConfigError(f"dispersions.{d.key!r}: also set by a built-in dispersion")
-    nominal = _check_base(base, overrides, {d.key for d in dispersions}, flags, mounting)
+    cfg = check_base(base, overrides, dispersions, flags, mounting, target)
+    nominal = tuple(float(x) for x in cfg.detection.camera_mounting_deg)
     if mounting > 0 and "assumed_camera_mounting_deg" not in overrides.get("estimation", {}):
         overrides = copy.deepcopy(overrides)  # the navigator assumes the nominal mounting
         overrides.setdefault("estimation", {})["assumed_camera_mounting_deg"] = list(nominal)
@@ -376,46 +390,8 @@ def spec_from_data(data: dict[str, Any], name: str, path: Path, text: str) -> Ca
                         keep_runs=flags["keep_runs"],
                         catalogue_errors=flags["catalogue_errors"], jitter=flags["jitter"],
                         mounting_sigma_deg=mounting, nominal_mounting_deg=nominal,
+                        table_window=cfg.scoring.table_window,
                         overrides=overrides, dispersions=dispersions, text=text)
-
-
-def _check_base(base: str, overrides: dict[str, Any], dispersed: set[str],
-                flags: dict[str, bool], mounting_deg: float) -> tuple[float, ...]:
-    """The base with the overrides is a valid config, and a built-in dispersion changes the runs:
-    a seed or angle the config ignores would be drawn, recorded and silently not applied (the
-    catalogue errors and the mounting need the physical sensor, the catalogue errors a non-zero
-    sigma, the jitter seed a non-zero rate). Returns the base's camera mounting (deg)."""
-    from pipeline.config import load_config
-
-    try:
-        cfg = load_config(base, "campaign-base", overrides)
-    except ConfigError as exc:
-        raise ConfigError(f"base and overrides: {exc}") from None
-    d, physical = cfg.detection, cfg.detection.sensor == "physical"
-    if mounting_deg > 0 and not physical:
-        raise ConfigError(f"mounting_sigma_deg = {mounting_deg:g}: the camera mounting needs "
-                          f"detection.sensor = \"physical\" (the base and overrides give "
-                          f"{d.sensor!r}: the paper's camera is the body frame)")
-    sigmas = ("catalogue_sigma_horizontal_m", "catalogue_sigma_height_m",
-              "catalogue_sigma_diameter_share", "site_map_sigma_horizontal_m",
-              "site_map_sigma_height_m", "site_map_relative_sigma_m")
-    if flags["catalogue_errors"] and not (physical and (
-            any(getattr(d, k) > 0 for k in sigmas)
-            or any(f"detection.{k}" in dispersed for k in sigmas))):
-        raise ConfigError("catalogue_errors = true: the catalogue's errors (detection.world_seed) "
-                          "need detection.sensor = \"physical\" and a catalogue sigma > 0 "
-                          f"(detection.{sigmas[0]}, ...); the base and overrides give sensor "
-                          f"{d.sensor!r}, sigmas {[getattr(d, k) for k in sigmas]}: the draw "
-                          "would change nothing")
-    rate = "trajectory.jitter_rate_sigma_rad_s"
-    if flags["jitter"] and cfg.trajectory.jitter_rate_sigma_rad_s == 0 and rate not in dispersed:
-        raise ConfigError(f"jitter = true: the pointing jitter's seed needs {rate} > 0 (the base "
-                          "and overrides give 0: the draw would change nothing)")
-    if mounting_deg > 0 and cfg.identification.mode != "simulated":
-        raise ConfigError(f"mounting_sigma_deg = {mounting_deg:g}: a mounting the navigator does "
-                          "not know needs identification.mode = \"simulated\" (the base and "
-                          f"overrides give {cfg.identification.mode!r})")
-    return tuple(float(x) for x in d.camera_mounting_deg)
 
 
 def _leaf_keys(d: dict[str, Any], prefix: str = "") -> list[str]:
@@ -444,62 +420,3 @@ def _flat_dispersions(raw: dict[str, Any]) -> dict[str, Any]:
 
     walk(raw, "")
     return out
-
-
-# --- a minimal TOML writer for a run's scenario file (nested tables of scalars and lists) -------
-
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if not math.isfinite(v):
-            raise ConfigError(f"cannot write {v!r} to a scenario")
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
-    raise ConfigError(f"cannot write {v!r} to a scenario")
-
-
-def _toml_key(k: str) -> str:
-    return k if k.replace("_", "").replace("-", "").isalnum() else _toml_value(k)
-
-
-def toml_text(data: dict[str, Any]) -> str:
-    """Nested tables of scalars and lists as TOML (round-trip checked)."""
-    lines: list[str] = []
-
-    def section(d: dict[str, Any], name: str) -> None:
-        scalars = {k: v for k, v in d.items() if not isinstance(v, dict)}
-        tables = {k: v for k, v in d.items() if isinstance(v, dict)}
-        if name and scalars:
-            lines.append(f"\n[{name}]")
-        lines.extend(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in scalars.items())
-        for k, v in tables.items():
-            section(v, f"{name}.{_toml_key(k)}" if name else _toml_key(k))
-
-    section(data, "")
-    text = "\n".join(lines) + "\n"
-    if tomllib.loads(text) != _jsonish(data):
-        raise ConfigError(f"internal: not a TOML round trip: {text}")
-    return text
-
-
-def scenario_toml(base: str, overrides: dict[str, Any], header: str = "") -> str:
-    """A scenario file: `extends = base` and the overrides."""
-    return "".join(f"# {line}\n" for line in header.splitlines()) + toml_text(
-        {"extends": base, **overrides})
-
-
-def _jsonish(d: Any) -> Any:
-    if isinstance(d, dict):
-        return {k: _jsonish(v) for k, v in d.items()}
-    if isinstance(d, list | tuple):
-        return [_jsonish(v) for v in d]
-    return d

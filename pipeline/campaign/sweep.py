@@ -17,9 +17,10 @@ from typing import Any
 
 import polars as pl
 
-from pipeline.campaign.execute import CampaignPaths, campaign_paths
+from pipeline.campaign.paths import CampaignPaths, campaign_paths
 from pipeline.campaign.results import read_table
-from pipeline.campaign.spec import CampaignSpec, spec_from_data, toml_text
+from pipeline.campaign.spec import CampaignSpec, spec_from_data
+from pipeline.campaign.toml_writer import toml_text
 from pipeline.config import RunConfig, scenario_path
 from pipeline.errors import ConfigError
 from pipeline.ops.sweep import cap_label, table1, table1_markdown

@@ -28,6 +28,21 @@ DETECTION_SOURCES = ("model", "pixels")
 
 DIAM_UNITS = ("km", "m")
 
+# The fields only the physical sensor reads (`ops.detect.physical_sensor`, `pixel_camera`): with
+# the paper's sensor a value of theirs changes nothing.
+PHYSICAL_ONLY = ("pixel_sigma_px", "distortion", "camera_mounting_deg", "bearing",
+                 "detect_min_diameter_px", "catalogue_sigma_horizontal_m",
+                 "catalogue_sigma_height_m", "catalogue_sigma_diameter_share",
+                 "site_map_sigma_horizontal_m", "site_map_sigma_height_m",
+                 "site_map_relative_sigma_m", "world_seed", "false_detection_share")
+
+
+def mounting_dcm(mounting_deg: tuple[float, ...]) -> np.ndarray:
+    """dcm_body_from_cam (3, 3) of a camera mounting: (yaw, pitch, roll) deg, intrinsic ZYX."""
+    z, y, x = np.radians(mounting_deg)
+    return Rotation.from_euler("ZYX", [z, y, x]).as_matrix()
+
+
 @dataclass(frozen=True)
 class DetectionConfig:
     """Camera, visibility, identification and measurements (stage `detect`), paper Sec. 3.4-3.5.
@@ -137,7 +152,5 @@ class DetectionConfig:
         """The physical sensor's camera: the field of view, the image size, the distortion."""
         fov = camera.FieldOfView.from_config(self.fov_deg, self.fov_convention)
         k1, k2, p1, p2, k3 = self.distortion
-        z, y, x = np.radians(self.camera_mounting_deg)
-        mounting = Rotation.from_euler("ZYX", [z, y, x]).as_matrix()
         return camera.PixelCamera.from_fov(fov, self.image_size_px, distortion=(k1, k2, p1, p2, k3),
-                                           dcm_body_from_cam=mounting)
+                                           dcm_body_from_cam=mounting_dcm(self.camera_mounting_deg))

@@ -3,15 +3,15 @@ derived from several sections (the navigator's assumed noise, IMU and mounting).
 
 from __future__ import annotations
 
-import dataclasses
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
 from pipeline.config.catalogue import CatalogueConfig
 from pipeline.config.checks import MAX_SEED, _check, _num, validate_run_id
-from pipeline.config.detection import DetectionConfig
+from pipeline.config.detection import DetectionConfig, mounting_dcm
 from pipeline.config.estimation import EstimationConfig
 from pipeline.config.flight import FlightConfig, VelocimeterConfig
 from pipeline.config.inertial import MAX_IMU_SAMPLES, AltimeterConfig, ImuConfig
@@ -67,6 +67,8 @@ class RunConfig:
                                            and self.trajectory.epoch_utc is not None),
                "render.start_s", "rendering needs detection.sensor = \"physical\" and "
                "trajectory.epoch_utc (the camera and the Sun)")
+        if self.render.enabled:
+            _check_render_memory(self.detection.image_size_px)
         if self.detection.source == "pixels":
             _check(self.render.enabled, "detection.source",
                    "= \"pixels\" needs rendered frames (render.start_s, render.end_s)")
@@ -204,9 +206,8 @@ class RunConfig:
         assumed = self.estimation.assumed_camera_mounting_deg
         if assumed is None:
             return None
-        d = self.detection
-        nav = dataclasses.replace(d, camera_mounting_deg=assumed).pixel_camera()
-        return nav.dcm_body_from_cam @ d.pixel_camera().dcm_cam_from_body
+        # the mounting alone (the stage's view of `detection` is no dataclass to replace in)
+        return mounting_dcm(assumed) @ self.detection.pixel_camera().dcm_cam_from_body
 
     def navigator_sigmas(self) -> tuple[float, float]:
         """(sigma_bearing ~rad, sigma_range_m m) the estimators assume: estimation.assumed_sigma_*,
@@ -218,3 +219,20 @@ class RunConfig:
 
 def _whole(x: float) -> bool:
     return math.isclose(x, round(x), rel_tol=0.0, abs_tol=1e-9) and round(x) >= 1
+
+
+RENDER_BYTES_PER_PX = 32  # a render holds at least a ray direction (3 float64) and a value per px
+
+
+def _check_render_memory(size_px: int) -> None:
+    """A rendered frame fits the machine: at least RENDER_BYTES_PER_PX per pixel against its
+    physical memory (a size the config accepts may not render here: MemoryError, or swap)."""
+    try:
+        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return  # unknown: nothing to check against
+    need = RENDER_BYTES_PER_PX * size_px * size_px
+    _check(need < total, "detection.image_size_px",
+           f"= {size_px:,}: rendering a {size_px:,} x {size_px:,} px frame needs at least "
+           f"{need / 2**30:,.1f} GiB of memory; this machine has {total / 2**30:,.1f} GiB "
+           "(render smaller images, or no render)")

@@ -19,7 +19,7 @@ from pipeline.engine.fingerprint import code_hash
 from pipeline.engine.progress import console, out
 from pipeline.engine.stage import VISUAL_LAYER, Stage, StageContext
 from pipeline.errors import StageInputError
-from pipeline.io.files import sweep_dead_temporaries
+from pipeline.io.files import sweep_dead_temporaries, write_failure
 from pipeline.io.rrd import visuals_enabled
 from pipeline.io.store import RunStore, StageTransaction
 from pipeline.workspace import workspace
@@ -129,6 +129,11 @@ class Executor:
                 s.verify(ctx)
             self._draw(s, StageContext(s.view(cfg, drawing=True), store, tx, paths))
             self._commit(s, cfg, tx, {"config": s.config_parts(cfg), **result.info})
+        except OSError as exc:
+            tx.abort()
+            if exc.filename is None:  # a write's ENOSPC names no file: name the stage's folder
+                raise write_failure(exc, tx.folder) from None
+            raise
         except BaseException:
             tx.abort()
             raise

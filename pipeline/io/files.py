@@ -4,6 +4,7 @@ writes through a temporary name, fsync, and the sweep of dead processes' leftove
 from __future__ import annotations
 
 import datetime as dt
+import errno
 import hashlib
 import os
 import re
@@ -28,8 +29,20 @@ def _sha256(path: str, size: int, mtime_ns: int, ctime_ns: int, chunk: int) -> s
     return h.hexdigest()
 
 
+def write_failure(exc: BaseException, path: Path) -> OSError:
+    """The OSError naming `path` of a failed write: an OSError's own errno (a write's ENOSPC
+    names no file), or a library's error carrying "(os error N)" (polars, rerun), else EIO."""
+    if isinstance(exc, OSError):
+        return OSError(exc.errno, exc.strerror or str(exc), str(path))
+    text = " ".join(str(exc).split())
+    m = re.search(r"os error (\d+)", text)
+    code = int(m.group(1)) if m else errno.EIO
+    return OSError(code, os.strerror(code) if m else text[:300], str(path))
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write bytes to `path` through a temporary name, fsync and a rename (ENOSPC/EFBIG raise)."""
+    """Write bytes to `path` through a temporary name, fsync and a rename (ENOSPC/EFBIG raise,
+    naming `path`)."""
     tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
     try:
         with open(tmp, "wb") as f:
@@ -37,6 +50,9 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise write_failure(exc, path) from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

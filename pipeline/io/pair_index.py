@@ -1,6 +1,8 @@
 """The lost-in-space pair-invariant indexes on disk: one .npz per catalogue, region and size
 range, beside the catalogue (config `identification.index_dir`), written atomically and read
-back when the same region is asked for again (`pipeline.core.vision.crater_index`)."""
+back when the same region is asked for again (`pipeline.core.vision.crater_index`). Each file
+holds the sha256 of its arrays (names, dtypes, shapes, bytes): a damaged file with the right key
+and shapes is rebuilt, not trusted (it identified no crater, for ever)."""
 
 from __future__ import annotations
 
@@ -14,6 +16,16 @@ import numpy as np
 
 from pipeline.core.vision.crater_index import PairIndex
 from pipeline.io.files import atomic_write_bytes
+
+
+def arrays_digest(arrays: dict[str, np.ndarray]) -> str:
+    """sha256 over the arrays' names, dtypes, shapes and bytes (in name order)."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
 
 
 class PairIndexStore:
@@ -41,6 +53,9 @@ class PairIndexStore:
             with np.load(path) as z:
                 arrays = {k: z[k] for k in z.files}
             stored = json.loads(str(arrays.pop("params")))
+            digest = str(arrays.pop("digest"))
+            if digest != arrays_digest(arrays):
+                return None
             index = PairIndex.from_arrays(arrays)
         except (OSError, ValueError, KeyError, EOFError, IndexError, TypeError,
                 zipfile.BadZipFile):
@@ -57,7 +72,9 @@ class PairIndexStore:
     def save(self, params: dict[str, float], index: PairIndex) -> Path:
         path = self.path(params)
         buf = io.BytesIO()
-        arrays = {"params": np.array(json.dumps(self._key(params))), **index.to_arrays()}
+        data = index.to_arrays()
+        arrays = {"params": np.array(json.dumps(self._key(params))),
+                  "digest": np.array(arrays_digest(data)), **data}
         np.savez(buf, allow_pickle=False, **arrays)
         self.directory.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(path, buf.getvalue())

@@ -30,6 +30,7 @@ import fcntl
 import json
 import os
 import shutil
+import stat
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -52,6 +53,9 @@ from pipeline.workspace import workspace
 
 class RunLockedError(PipelineError):
     """Another command holds the run's lock (and we were told not to wait)."""
+
+
+CAMPAIGN_MARKERS = ("spec.toml", "campaign.json")  # files of a campaign's folder
 
 
 class RunStore:
@@ -123,30 +127,73 @@ class RunStore:
         e = self.entry(stage)
         return None if e is None else e.get("digest")
 
-    def artifacts(self) -> dict[str, Path]:
-        """Every committed output and visual by name (e.g. "detections.parquet") -> its path."""
+    def verified(self, wanted: Any = None) -> dict[str, Path]:
+        """The committed outputs and visuals (those whose name `wanted(name)` accepts; None: all)
+        by name -> path, each checked as a stage checks its inputs: a plain file name, a regular
+        file inside the run's .stages/ folder, with the size and sha256 its stage committed.
+        StageInputError naming the file otherwise (a reader never serves a replaced, altered or
+        missing output as the run's)."""
         found = {}
         for stage in self.committed_stages():
             entry = self.entry(stage) or {}
-            for name in (*entry.get("outputs", {}), *entry.get("visuals", {})):
-                found[name] = self.stage_dir(stage) / name
+            for kind in ("outputs", "visuals"):
+                for name, promised in (entry.get(kind) or {}).items():
+                    if wanted is None or wanted(name):
+                        found[name] = self._verify(stage, name, promised)
         return found
 
+    def _verify(self, stage: str, name: Any, promised: Any) -> Path:
+        folder = self.stage_dir(stage)
+        redo = f"rerun `just run` for run {self.run_id!r} (or the stage: --force {stage})"
+        if (not isinstance(name, str) or not name or name in (".", "..") or "/" in name
+                or "\0" in name or name == ENTRY_FILE):
+            raise StageInputError(f"{folder / ENTRY_FILE}: lists an output {name!r} that is not "
+                                  f"a file name of the stage's folder; {redo}")
+        stages = self.stages_dir.resolve()
+        real = folder.resolve()
+        if real.parent != stages:
+            raise StageInputError(f"{folder}: points outside the run's {STAGES_DIR}/ folder "
+                                  f"({real}); {redo}")
+        path = folder / name
+        try:
+            st = path.lstat()
+        except OSError:
+            raise StageInputError(f"{path}: missing (committed by stage {stage!r}); "
+                                  f"{redo}") from None
+        if not stat.S_ISREG(st.st_mode):
+            raise StageInputError(f"{path}: not a regular file of the stage's folder (a link "
+                                  f"or a folder); {redo}")
+        try:
+            size, sha = int(promised["bytes"]), str(promised["sha256"])
+        except (TypeError, KeyError, ValueError):
+            raise StageInputError(f"{folder / ENTRY_FILE}: no size and sha256 for {name!r}; "
+                                  f"{redo}") from None
+        if st.st_size != size:
+            raise StageInputError(f"{path}: {st.st_size:,} bytes, not the {size:,} its stage "
+                                  f"committed (replaced or truncated); {redo}")
+        if sha256_file(path) != sha:
+            raise StageInputError(f"{path}: its sha256 is not the one its stage committed "
+                                  f"(altered since); {redo}")
+        return path
+
     def path(self, artifact: str) -> Path:
-        """The committed path of output `artifact`; StageInputError when no stage committed it."""
-        p = self.artifacts().get(artifact)
+        """The committed path of output `artifact`, verified (`verified`); StageInputError when
+        no stage committed it or it is not as committed."""
+        p = self.verified(lambda name: name == artifact).get(artifact)
         if p is None:
             raise StageInputError(f"run {self.run_id!r} has no {artifact!r}: run `just run "
                                   f"{self.run_id}` (or the stage that writes it) first")
         return p
 
     def tables(self) -> dict[str, Path]:
-        """The run's tables: table name (the Parquet file's stem) -> committed Parquet path."""
-        return {Path(n).stem: p for n, p in self.artifacts().items() if n.endswith(".parquet")}
+        """The run's tables: table name (the Parquet file's stem) -> committed Parquet path,
+        verified."""
+        return {Path(n).stem: p
+                for n, p in self.verified(lambda n: n.endswith(".parquet")).items()}
 
     def recordings(self) -> list[Path]:
-        """The run's committed Rerun recordings."""
-        return sorted(p for n, p in self.artifacts().items() if n.endswith(".rrd"))
+        """The run's committed Rerun recordings, verified."""
+        return sorted(self.verified(lambda n: n.endswith(".rrd")).values())
 
     def is_fresh(self, stage: str, key: str, upstream: dict[str, str | None] | None = None
                  ) -> bool:
@@ -189,7 +236,12 @@ class RunStore:
         """Hold the run's lock (one command per run at a time); sweep dead leftovers inside.
 
         `wait=False` raises RunLockedError at once when another command holds it; otherwise wait,
-        saying once who holds it through `announce(line)`."""
+        saying once who holds it through `announce(line)`. A campaign's folder (its spec.toml or
+        campaign.json, no manifest) is refused: a run's stages never write into it."""
+        if not self.manifest_path.is_file() and any(
+                (self.run_dir / n).is_file() for n in CAMPAIGN_MARKERS):
+            raise StageInputError(f"{self.run_dir}: the folder of campaign {self.run_id!r}, not "
+                                  "a run's; give the run another --run-id")
         self.run_dir.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.run_dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
         try:

@@ -4,9 +4,13 @@ quaternions as <prefix>_x, _y, _z, _w (scalar-last), flat so that SQL reads them
 from __future__ import annotations
 
 import math
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import polars as pl
+
+from pipeline.errors import StageInputError
 
 
 def reduced(value: object, default: float = math.nan) -> float:
@@ -37,3 +41,12 @@ def quat_columns(prefix: str, q: np.ndarray) -> dict[str, np.ndarray]:
 def quats(table: pl.DataFrame, prefix: str) -> np.ndarray:
     """(N, 4) scalar-last quaternions from the columns <prefix>_x, _y, _z, _w."""
     return np.stack([table[f"{prefix}_{c}"].to_numpy() for c in "xyzw"], axis=1)
+
+
+def read_table(path: Path, **kwargs: Any) -> pl.DataFrame:
+    """A Parquet table, or StageInputError naming the file when it cannot be read."""
+    try:
+        return pl.read_parquet(path, **kwargs)
+    except (OSError, pl.exceptions.PolarsError) as exc:
+        text = " ".join(str(exc).split())[:300]
+        raise StageInputError(f"{path}: not a readable Parquet table ({text})") from None

@@ -14,7 +14,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pipeline.errors import StageInputError
-from pipeline.io.files import _fsync_dir, atomic_write_text, now_iso, sha256_file
+from pipeline.io.files import (
+    _fsync_dir,
+    atomic_write_text,
+    now_iso,
+    sha256_file,
+    write_failure,
+)
 from pipeline.vocab.tables import check_table
 
 if TYPE_CHECKING:
@@ -67,7 +73,10 @@ class StageTransaction:
         it matches its declared schema (`pipeline.vocab.tables`; TableSchemaError if not)."""
         check_table(name, frame)
         path = self.output(f"{name}.parquet")
-        frame.write_parquet(path)
+        try:
+            frame.write_parquet(path)
+        except Exception as exc:  # polars' ComputeError on ENOSPC names no file
+            raise write_failure(exc, path) from None
         self.tables.append(name)
         self.rows[name] = frame.height
         return path

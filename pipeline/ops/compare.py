@@ -33,7 +33,8 @@ def frame_series(run: str, frames_table: pl.DataFrame, scores: pl.DataFrame,
 def centre_bias(run: str, detections: pl.DataFrame, k: np.ndarray) -> pl.DataFrame | None:
     """The physical sensor's ellipse-centre bias per emission-angle bin: the true rim ellipse's
     centre minus the pinhole image of the true crater centre (px, median and 95th percentile of
-    its length), and the bias as an angle (median, microradians). None without ellipses."""
+    its length), and the bias as an angle (median, microradians). None without ellipses, or
+    without a bin of 10 craters."""
     if "true_ellipse_u_px" not in detections.columns:
         return None
     u = xyz(detections, "u_true_body", "")
@@ -53,7 +54,7 @@ def centre_bias(run: str, detections: pl.DataFrame, k: np.ndarray) -> pl.DataFra
                      "median_bias_px": float(np.median(length[sel])),
                      "p95_bias_px": float(np.percentile(length[sel], 95)),
                      "median_bias_urad": float(np.median(length[sel]) / k[0, 0] * 1e6)})
-    return pl.DataFrame(rows)
+    return pl.DataFrame(rows) if rows else None  # no bin with enough craters (or none at all)
 
 
 def window_rows(run: str, summary: pl.DataFrame, nav_summary: pl.DataFrame) -> pl.DataFrame:

@@ -65,7 +65,7 @@ def run_recordings(run: str, root: Path | None = None) -> tuple[Path, list[Path]
     if not store.manifest_path.is_file() and (store.run_dir / "campaign.parquet").is_file():
         return store.run_dir, sorted(p for p in store.run_dir.glob("*.rrd")
                                      if p.stat().st_size), None
-    facts_path = store.artifacts().get("catalogue.json")
+    facts_path = store.verified(lambda name: name == "catalogue.json").get("catalogue.json")
     catalogue = None
     if facts_path is not None:
         recorded_catalogue_db(facts_path)  # still the run's catalogue, else a clear error

@@ -98,6 +98,29 @@ def test_imu_increments_are_the_trajectory_s_motion(tmp_path: Path, catalogue_db
     assert np.max(np.abs(err)) < 1e-9
 
 
+
+def test_imu_and_altimeter_draws_do_not_depend_on_the_frames_window() -> None:
+    """Two windows of one config draw the same IMU increments, bias history and altimeter noise
+    at the times they share: a sample's draw is the whole descent's, cut to the window."""
+    from pipeline.ops.imu import simulate
+    from pipeline.ops.trajectory import frame_times, propagate
+
+    cfg = load_config(str(DEFAULT_TOML), "window")
+    descent, _ = propagate(cfg.trajectory)
+    _, t_all = frame_times(cfg.trajectory, descent.t_impact_s)
+    wide = simulate(cfg.trajectory, cfg.imu, cfg.altimeter, cfg.seed,
+                    t_all[(t_all >= 1900.0) & (t_all <= 2100.0)])
+    narrow = simulate(cfg.trajectory, cfg.imu, cfg.altimeter, cfg.seed,
+                      t_all[(t_all >= 2000.0) & (t_all <= 2050.0)])
+    for a, b in ((wide.imu, narrow.imu), (wide.altimeter, narrow.altimeter),
+                 (wide.truth, narrow.truth)):
+        shared = a.join(b.select("t_s"), on="t_s", how="semi")
+        assert shared.height == b.height > 10
+        assert shared.equals(b)  # bit for bit
+    other = simulate(cfg.trajectory, cfg.imu, cfg.altimeter, cfg.seed + 1,
+                     t_all[(t_all >= 2000.0) & (t_all <= 2050.0)])
+    assert not other.imu.equals(narrow.imu)  # another seed draws anew
+
 @pytest.mark.slow
 def test_navigation_config_reruns_only_navigation_and_scoring(tmp_path: Path,
                                                               catalogue_db: Path) -> None:

@@ -138,8 +138,11 @@ def draw_triad(rng: np.random.Generator, errors: TriadErrors, n_samples: int, dt
     return TriadDraw(matrix, turn_on[None, :] + gm)
 
 
-def measure_triad(rng: np.random.Generator, draw: TriadDraw, errors: TriadErrors,
+def measure_triad(noise: np.random.Generator | np.ndarray, draw: TriadDraw, errors: TriadErrors,
                   true_increment: np.ndarray, dt_s: float) -> np.ndarray:
-    """Measured increments (K, 3): (I + S + M) true + b dt + random_walk sqrt(dt) n."""
-    white = errors.random_walk * np.sqrt(dt_s) * rng.standard_normal(true_increment.shape)
+    """Measured increments (K, 3): (I + S + M) true + b dt + random_walk sqrt(dt) n, with n
+    standard normal: `noise` (K, 3) given, or drawn from the generator `noise`."""
+    n = (noise.standard_normal(true_increment.shape) if isinstance(noise, np.random.Generator)
+         else np.asarray(noise, dtype=float))
+    white = errors.random_walk * np.sqrt(dt_s) * n
     return true_increment @ draw.matrix.T + draw.bias * dt_s + white

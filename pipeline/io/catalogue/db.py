@@ -109,7 +109,7 @@ def recorded_catalogue_db(catalogue_json: Path) -> Path:
 def run_catalogue_db(store: RunStore) -> Path | None:
     """The catalogue database a run's stages used (recorded by its ingest stage), checked to
     still hold that catalogue; None when the run has no ingest yet."""
-    p = store.artifacts().get("catalogue.json")
+    p = store.verified(lambda name: name == "catalogue.json").get("catalogue.json")
     return None if p is None else recorded_catalogue_db(p)
 
 

@@ -108,18 +108,32 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
     if has_rim_ellipses(detections):  # the rim ellipses draw the craters: dots mark the bearings
         radius_px = np.full(radius_px.shape, rr.components.Radius.ui_points(BEARING_DOT_UI))
     used = detections["used"].to_numpy()
-    n_used = frames_table["n_used"].to_numpy()
     false = used & detections["false_match"].to_numpy()
-    _points3d(rec, "/world/moon/visible", times, seen_mcmf, radius_m, n_visible, VISIBLE_COLOR)
-    _points3d(rec, "/world/moon/used", times, c_mcmf[used], radius_m[used], n_used, USED_COLOR)
-    if false.any():
-        per_frame = np.bincount(np.repeat(np.arange(frame.size), n_visible), weights=false,
-                                minlength=frame.size).astype(int)
-        _points3d(rec, "/world/moon/false_matches", times, c_mcmf[false], radius_m[false],
-                  per_frame, FALSE_MATCH_COLOR)
+    # no NaN reaches the recording: a false detection has no true crater (NaN position, size)
+    frame_of = np.repeat(np.arange(frame.size), n_visible)
+
+    def per_frame(mask: np.ndarray) -> np.ndarray:
+        return np.bincount(frame_of[mask], minlength=frame.size).astype(int)
+
+    radius_px = np.where(np.isfinite(radius_px), radius_px,
+                         rr.components.Radius.ui_points(BEARING_DOT_UI))
+    real = np.isfinite(seen_mcmf).all(axis=1) & np.isfinite(radius_m)
+    placed = np.isfinite(c_mcmf).all(axis=1) & np.isfinite(radius_m)
+    on_image = np.isfinite(pixel).all(axis=1)
+    _points3d(rec, "/world/moon/visible", times, seen_mcmf[real], radius_m[real], per_frame(real),
+              VISIBLE_COLOR)
+    sel = used & placed
+    _points3d(rec, "/world/moon/used", times, c_mcmf[sel], radius_m[sel], per_frame(sel),
+              USED_COLOR)
+    sel = false & placed
+    if sel.any():
+        _points3d(rec, "/world/moon/false_matches", times, c_mcmf[sel], radius_m[sel],
+                  per_frame(sel), FALSE_MATCH_COLOR)
     cam = "/world/spacecraft/camera"
-    _points2d(rec, f"{cam}/visible", times, pixel, radius_px, n_visible, VISIBLE_COLOR)
-    _points2d(rec, f"{cam}/used", times, pixel[used], radius_px[used], n_used, USED_COLOR)
+    _points2d(rec, f"{cam}/visible", times, pixel[on_image], radius_px[on_image],
+              per_frame(on_image), VISIBLE_COLOR)
+    sel = used & on_image
+    _points2d(rec, f"{cam}/used", times, pixel[sel], radius_px[sel], per_frame(sel), USED_COLOR)
 
     for name, column in COUNT_SERIES:
         send_scalars(rec, f"/counts/{name}", frame, t_s, frames_table[column].to_numpy(), name,

@@ -3,6 +3,9 @@ context that carries it."""
 
 from __future__ import annotations
 
+import errno
+import os
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -165,13 +168,42 @@ def plot_views(nees_max: float | None = None) -> list[rrb.TimeSeriesView]:
     ]
 
 
+SAVE_TIMEOUT_S = 60.0  # the layout file's save, at most (it takes < 0.1 s)
+
+
 def save_layout(path: Path, scores=None) -> Path:
     """Write the layout as a blueprint file (layout.rbl): with `scores`, the error plots get
     fixed y ranges from `error_ranges(scores)` and show the whole run (the form without
     cursor-relative time ranges, readable with polars). The viewer itself takes the layout every
-    stage recording carries (`blueprint()`); this file is for `rerun` users and tools."""
-    blueprint(None if scores is None else error_ranges(scores)).save(APP_ID, path)
-    return Path(path)
+    stage recording carries (`blueprint()`); this file is for `rerun` users and tools.
+
+    rerun-sdk's save writes from its own thread and was seen to block for ever on a full disk:
+    it saves to a temporary file in a thread given SAVE_TIMEOUT_S, then the file is moved in;
+    OSError naming `path` when it does not finish (the thread is left behind, a daemon)."""
+    path = Path(path)
+    bp = blueprint(None if scores is None else error_ranges(scores))
+    tmp = path.with_name(f".tmp-{os.getpid()}-{threading.get_ident()}-{path.name}")
+    failure: list[BaseException] = []
+
+    def save() -> None:
+        try:
+            bp.save(APP_ID, tmp)
+        except BaseException as exc:  # handed to the caller's thread
+            failure.append(exc)
+
+    worker = threading.Thread(target=save, name="blueprint-save", daemon=True)
+    worker.start()
+    worker.join(SAVE_TIMEOUT_S)
+    if worker.is_alive() or failure or not tmp.is_file():
+        tmp.unlink(missing_ok=True)
+        if failure and isinstance(failure[0], OSError):
+            raise OSError(failure[0].errno, failure[0].strerror or str(failure[0]), str(path))
+        why = (f"rerun's blueprint save did not finish within {SAVE_TIMEOUT_S:g} s (a full "
+               "disk?)" if worker.is_alive() else f"rerun's blueprint save failed "
+               f"({failure[0] if failure else 'no file written'})")
+        raise OSError(errno.EIO, why, str(path))
+    os.replace(tmp, path)
+    return path
 
 
 def sweep_blueprint(methods: tuple[str, ...] | list[str] = METHODS) -> rrb.Blueprint:

@@ -1,0 +1,106 @@
+"""Input the machine cannot honour is one line naming the file or key, never a traceback: a disk
+full in a stage's write (polars' ComputeError, a write's ENOSPC naming no file), non-UTF-8 bytes
+in a query or a spec, `--timeout-s inf`, a NUL byte or a path leaving the project in
+identification.index_dir, a render larger than the machine's memory, a run's stages into a
+campaign's folder."""
+
+from __future__ import annotations
+
+import io
+import os
+import sys
+from pathlib import Path
+
+import polars as pl
+import pytest
+from test_cli import TINY, assert_clear_error, main
+
+from pipeline.config import load_config
+from pipeline.errors import ConfigError
+from pipeline.io import files
+
+PHYSICAL_RENDER = {"trajectory": {"epoch_utc": "2026-01-30T08:40:00Z", "start_s": 1800.0,
+                                  "end_s": 1810.0},
+                   "detection": {"sensor": "physical", "range_source": "apparent_size"},
+                   "render": {"start_s": 1800.0, "end_s": 1810.0}}
+
+
+@pytest.fixture
+def tiny_scenario(workdir: Path) -> Path:
+    (workdir / "runs" / "scenarios" / "tiny.toml").write_text(TINY)
+    return workdir
+
+
+def test_a_full_disk_in_a_stage_table_is_one_line_naming_the_file(tiny_scenario, monkeypatch,
+                                                                  capsys):
+    real = pl.DataFrame.write_parquet
+
+    def full(self, file, *args, **kwargs):
+        if Path(file).name == "imu.parquet":
+            raise pl.exceptions.ComputeError("failed to write: No space left on device "
+                                             "(os error 28)")
+        return real(self, file, *args, **kwargs)
+
+    monkeypatch.setattr(pl.DataFrame, "write_parquet", full)
+    code, _, err = main(monkeypatch, capsys, "run", "tiny")
+    assert "Traceback" not in err
+    assert_clear_error(code, err[err.index("error: "):], "imu.parquet", "No space left on device")
+
+
+def test_a_write_that_fails_without_a_file_name_is_named(tmp_path, monkeypatch):
+    def full(fd):
+        raise OSError(28, "No space left on device")  # as write()/fsync() raise it: no name
+
+    monkeypatch.setattr(os, "fsync", full)
+    target = tmp_path / "frames.json"
+    with pytest.raises(OSError) as err:
+        files.atomic_write_bytes(target, b"{}")
+    assert err.value.errno == 28 and err.value.filename == str(target)
+    assert not list(tmp_path.iterdir())  # no temporary left
+    assert files.write_failure(ValueError("x (os error 28)"), target).errno == 28
+
+
+def test_non_utf8_queries_and_an_infinite_timeout_are_one_line(workdir, monkeypatch, capsys):
+    code, _, err = main(monkeypatch, capsys, "sql", "SELECT 'a\udcff'")
+    assert_clear_error(code, err, "not UTF-8")
+    monkeypatch.setattr(sys, "stdin", io.TextIOWrapper(io.BytesIO(b"SELECT '\xff'")))
+    code, _, err = main(monkeypatch, capsys, "sql", "-")
+    assert_clear_error(code, err, "standard input", "0xff")
+    code, _, err = main(monkeypatch, capsys, "sql", "--timeout-s", "inf", "SELECT 1")
+    assert_clear_error(code, err, "--timeout-s inf", "finite")
+
+
+def test_a_non_utf8_spec_is_one_line_naming_it(workdir, monkeypatch, capsys):
+    path = workdir / "runs" / "campaigns" / "bytes.toml"
+    path.parent.mkdir(parents=True)
+    path.write_bytes(b'base = "default"\nruns = 2\n# \xff\xfe\n')
+    code, _, err = main(monkeypatch, capsys, "campaign", str(path), "--local")
+    assert_clear_error(code, err, str(path), "not UTF-8", "0xff")
+
+
+@pytest.mark.parametrize(("index_dir", "why"), [
+    ("catalogue/ix\0", "NUL"), ("../../elsewhere", "leaves it"), ("a/../../b", "leaves it")])
+def test_an_index_dir_the_project_cannot_hold_is_refused(workdir, index_dir, why):
+    with pytest.raises(ConfigError) as err:
+        load_config("default", "x", {"identification": {"index_dir": index_dir}})
+    assert "identification.index_dir" in str(err.value) and why in str(err.value)
+
+
+def test_a_render_the_memory_cannot_hold_is_refused_at_load(workdir):
+    load_config("default", "x", PHYSICAL_RENDER)  # the default size renders
+    big = {**PHYSICAL_RENDER, "detection": {**PHYSICAL_RENDER["detection"],
+                                            "image_size_px": 100_000}}
+    with pytest.raises(ConfigError) as err:
+        load_config("default", "x", big)
+    msg = str(err.value)
+    assert "detection.image_size_px = 100,000" in msg and "GiB of memory" in msg, msg
+
+
+def test_a_run_into_a_campaigns_folder_is_refused(tiny_scenario, monkeypatch, capsys):
+    folder = tiny_scenario / "runs" / "mc"
+    folder.mkdir()
+    (folder / "spec.toml").write_text('base = "default"\nruns = 2\n')
+    code, _, err = main(monkeypatch, capsys, "run", "tiny", "--run-id", "mc")
+    assert "Traceback" not in err
+    assert_clear_error(code, err[err.index("error: "):], str(folder), "campaign", "--run-id")
+    assert sorted(p.name for p in folder.iterdir()) == ["spec.toml"]
