@@ -7,11 +7,13 @@ time at 10, 100, 900 craters), navigate, physical, pnp (against OpenCV's solvePn
 pixels on the `images` scenario), run (cold and warm `run` as a user starts it), sweep, campaign
 (dispersed full-descent runs: in-process, on Ray with 1 and 2 workers), campaign100 (the shipped
 100-run `dispersed` campaign), detector (the learned and classical crater detectors on held-back
-rendered scenes, the `images-learned` scenario and held-out real images: `bench.detector`).
+rendered scenes, the `images-learned` scenario and held-out real images: `bench.detector`),
+terrain (queries, the altimeter's beams, tile memory), landing (one `run landing`: time, miss,
+touchdown), landing-campaign (`landing-dispersed` cut to a few runs, 100 extrapolated).
 Stage-level groups work in a scratch copy of the project folder, so the user's catalogue and runs
 are untouched. One module per topic: common (results, the scratch folder), catalogue, estimation,
-identify, render, runs, detector; pnp (the joint ML against OpenCV's solvePnP) and terrain
-(the terrain's speed and memory, `python -m pipeline.bench.terrain`) beside them.
+identify, render, runs, detector, landing, terrain; pnp (the joint ML against OpenCV's
+solvePnP).
 """
 
 from __future__ import annotations
@@ -35,8 +37,10 @@ from pipeline.bench.estimation import (
     bench_pnp,
 )
 from pipeline.bench.identify import bench_identify
+from pipeline.bench.landing import bench_landing, bench_landing_campaign
 from pipeline.bench.render import bench_render
 from pipeline.bench.runs import bench_campaign, bench_campaign100, bench_run, bench_sweep
+from pipeline.bench.terrain import bench_terrain
 from pipeline.io.files import now_iso
 from pipeline.workspace import workspace
 
@@ -59,7 +63,8 @@ GROUPS: dict[str, Callable[[Scratch], list[Result]]] = {
     "estimators": bench_estimators, "navigate": bench_navigate, "physical": bench_physical,
     "pnp": bench_pnp, "identify": bench_identify, "render": bench_render, "run": bench_run,
     "sweep": bench_sweep, "campaign": bench_campaign, "campaign100": bench_campaign100,
-    "detector": bench_detector,
+    "detector": bench_detector, "terrain": bench_terrain, "landing": bench_landing,
+    "landing-campaign": bench_landing_campaign,
 }
 
 

@@ -94,6 +94,20 @@ def test_the_closed_loop_writes_the_open_loop_tables_with_their_columns(flown, c
     assert entry is not None and "fly" in entry["inputs"]
 
 
+def test_the_flights_detections_hold_the_craters_the_navigator_measured_against(flown):
+    # over terrain the navigator's craters sit on its map's rim crests, not on the sphere: the
+    # detections table carries them, so the single-frame fixes of `estimate` use them too
+    from pipeline.core.math.constants import MOON_RADIUS_M
+
+    used = read(flown, "detections").filter(pl.col("used"))
+    c = np.stack([used[f"c_mci_{a}_m"].to_numpy() for a in "xyz"], axis=1)
+    heights = np.linalg.norm(c, axis=1) - MOON_RADIUS_M
+    assert np.percentile(np.abs(heights), 50) > 1.0  # the map's relief, metres to hundreds
+    est = read(flown, "estimates").filter(pl.col("n_used") >= 6)
+    assert est.height > 100
+    assert (est["status"] == "ok").mean() > 0.9
+
+
 def test_the_guidance_table_follows_the_phases_and_the_rocket_equation(flown):
     g = read(flown, "guidance")
     phases = [p for i, p in enumerate(g["phase"].to_list())
