@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.errors import StageInputError
 from pipeline.io.files import _fsync_dir, atomic_write_text, now_iso, sha256_file
+from pipeline.io.tables import write_parquet
 
 if TYPE_CHECKING:
     from pipeline.io.store import RunStore
@@ -64,7 +65,7 @@ class StageTransaction:
     def table(self, name: str, frame: Any) -> Path:
         """Write a polars DataFrame as `<name>.parquet`, a table of the run (SQL: `name`)."""
         path = self.output(f"{name}.parquet")
-        frame.write_parquet(path)
+        write_parquet(frame, path)
         self.tables.append(name)
         self.rows[name] = frame.height
         return path
