@@ -6,7 +6,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from pipeline.config.checks import (
     MAX_SEED,
@@ -138,6 +137,8 @@ class DetectionConfig:
         fov = camera.FieldOfView.from_config(self.fov_deg, self.fov_convention)
         k1, k2, p1, p2, k3 = self.distortion
         z, y, x = np.radians(self.camera_mounting_deg)
+        from scipy.spatial.transform import Rotation  # lazy: config loads without it
+
         mounting = Rotation.from_euler("ZYX", [z, y, x]).as_matrix()
         return camera.PixelCamera.from_fov(fov, self.image_size_px, distortion=(k1, k2, p1, p2, k3),
                                            dcm_body_from_cam=mounting)
