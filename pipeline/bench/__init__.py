@@ -7,7 +7,8 @@ time at 10, 100, 900 craters), navigate, physical, pnp (against OpenCV's solvePn
 pixels on the `images` scenario), run (cold and warm `run` as a user starts it), sweep, campaign
 (dispersed full-descent runs: in-process, on Ray with 1 and 2 workers), campaign100 (the shipped
 100-run `dispersed` campaign), detector (the learned and classical crater detectors on held-back
-rendered scenes, the `images-learned` scenario and held-out real images: `bench.detector`).
+rendered scenes, the `images-learned` scenario and held-out real images: `bench.detector`),
+test (`just test` as the README runs it).
 Stage-level groups work in a scratch copy of the project folder, so the user's catalogue and runs
 are untouched. One module per topic: common (results, the scratch folder), catalogue, estimation,
 identify, render, runs, detector; pnp (the joint ML against OpenCV's solvePnP) and terrain
@@ -36,7 +37,13 @@ from pipeline.bench.estimation import (
 )
 from pipeline.bench.identify import bench_identify
 from pipeline.bench.render import bench_render
-from pipeline.bench.runs import bench_campaign, bench_campaign100, bench_run, bench_sweep
+from pipeline.bench.runs import (
+    bench_campaign,
+    bench_campaign100,
+    bench_run,
+    bench_sweep,
+    bench_test,
+)
 from pipeline.io.files import now_iso
 from pipeline.workspace import workspace
 
@@ -59,7 +66,7 @@ GROUPS: dict[str, Callable[[Scratch], list[Result]]] = {
     "estimators": bench_estimators, "navigate": bench_navigate, "physical": bench_physical,
     "pnp": bench_pnp, "identify": bench_identify, "render": bench_render, "run": bench_run,
     "sweep": bench_sweep, "campaign": bench_campaign, "campaign100": bench_campaign100,
-    "detector": bench_detector,
+    "detector": bench_detector, "test": bench_test,
 }
 
 
