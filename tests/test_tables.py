@@ -30,9 +30,11 @@ def test_round_trip_is_exact_and_duckdb_reads_it(tmp_path):
     back = pl.read_parquet(path)
     assert back.schema == frame.schema
     assert back.equals(frame)  # NaN and null kept apart, bit for bit
-    total = duckdb.sql(f"SELECT sum(x) FILTER (WHERE NOT isnan(x)), count(maybe) FROM "
-                       f"'{path}'").fetchall()[0]
-    assert np.isclose(total[0], frame["x"].fill_nan(None).sum(), rtol=1e-12, atol=0)
+    rel = duckdb.sql(f"SELECT sum(x) FILTER (WHERE NOT isnan(x)), count(maybe) FROM '{path}'")
+    assert rel is not None
+    total = rel.fetchall()[0]
+    expected = float(frame["x"].fill_nan(None).sum())
+    assert np.isclose(float(total[0]), expected, rtol=1e-12, atol=0)
     assert total[1] == frame["maybe"].count()
 
 
