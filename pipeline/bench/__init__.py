@@ -9,7 +9,8 @@ pixels on the `images` scenario), run (cold and warm `run` as a user starts it),
 100-run `dispersed` campaign), detector (the learned and classical crater detectors on held-back
 rendered scenes, the `images-learned` scenario and held-out real images: `bench.detector`),
 terrain (queries, the altimeter's beams, tile memory), landing (one `run landing`: time, miss,
-touchdown), landing-campaign (`landing-dispersed` cut to a few runs, 100 extrapolated).
+touchdown), landing-campaign (`landing-dispersed` cut to a few runs, 100 extrapolated),
+test (`just test` as the README runs it).
 Stage-level groups work in a scratch copy of the project folder, so the user's catalogue and runs
 are untouched. One module per topic: common (results, the scratch folder), catalogue, estimation,
 identify, render, runs, detector, landing, terrain; pnp (the joint ML against OpenCV's
@@ -39,7 +40,13 @@ from pipeline.bench.estimation import (
 from pipeline.bench.identify import bench_identify
 from pipeline.bench.landing import bench_landing, bench_landing_campaign
 from pipeline.bench.render import bench_render
-from pipeline.bench.runs import bench_campaign, bench_campaign100, bench_run, bench_sweep
+from pipeline.bench.runs import (
+    bench_campaign,
+    bench_campaign100,
+    bench_run,
+    bench_sweep,
+    bench_test,
+)
 from pipeline.bench.terrain import bench_terrain
 from pipeline.io.files import now_iso
 from pipeline.workspace import workspace
@@ -64,7 +71,7 @@ GROUPS: dict[str, Callable[[Scratch], list[Result]]] = {
     "pnp": bench_pnp, "identify": bench_identify, "render": bench_render, "run": bench_run,
     "sweep": bench_sweep, "campaign": bench_campaign, "campaign100": bench_campaign100,
     "detector": bench_detector, "terrain": bench_terrain, "landing": bench_landing,
-    "landing-campaign": bench_landing_campaign,
+    "landing-campaign": bench_landing_campaign, "test": bench_test,
 }
 
 

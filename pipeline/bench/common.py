@@ -61,10 +61,13 @@ class Scratch:
 
     def cli(self, *args: str) -> float:
         """Wall time (s) of `python -m pipeline <args>` run in the scratch folder."""
+        env = {**os.environ, "CRATER_NAV_ROOT": str(self.dir)}
+        if env.get("PYTHONPATH"):  # `PYTHONPATH=. just bench`: this checkout, not the scratch's
+            env["PYTHONPATH"] = os.pathsep.join(str(Path(p).resolve())
+                                                for p in env["PYTHONPATH"].split(os.pathsep) if p)
         t0 = time.perf_counter()
         subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=self.dir, check=True,
-                       stdout=subprocess.DEVNULL,
-                       env={**os.environ, "CRATER_NAV_ROOT": str(self.dir)})
+                       stdout=subprocess.DEVNULL, env=env)
         return time.perf_counter() - t0
 
     def close(self) -> None:

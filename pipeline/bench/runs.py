@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
+import time
 from typing import Any
 
 import numpy as np
@@ -18,6 +21,13 @@ from pipeline.config import load_config
 from pipeline.io.store import RunStore
 from pipeline.workspace import workspace
 
+# issue 26's targets: a cold `run` of the default, the default's run folder, the shipped 100-run
+# `dispersed` campaign (margin for slower machines) and `just test`
+COLD_RUN_S = 15.0
+RUN_FOLDER_MIB = 40.0
+CAMPAIGN100_S = 600.0
+TEST_SUITE_S = 120.0
+
 
 def bench_run(scratch: Scratch) -> list[Result]:
     fresh = Scratch()  # no catalogue yet: a cold start
@@ -30,10 +40,11 @@ def bench_run(scratch: Scratch) -> list[Result]:
     finally:
         fresh.close()
     return [
-        result("run: cold (catalogue generated and ingested, every stage)", cold, "s", 30.0),
+        result("run: cold (catalogue generated and ingested, every stage)", cold, "s",
+               COLD_RUN_S),
         result("run: warm (catalogue built; trajectory to score)", warm, "s", 30.0),
         result("run: recordings per run (*.rrd)", rrd / 2**20, "MiB"),
-        result("run: run folder size", run_bytes / 2**20, "MiB"),
+        result("run: run folder size", run_bytes / 2**20, "MiB", RUN_FOLDER_MIB),
     ]
 
 
@@ -105,6 +116,21 @@ def bench_campaign100(scratch: Scratch) -> list[Result]:
     t, runs_s, table = _campaign(scratch, "bench-dispersed", 100)
     ok = int((table.unique("run")["status"] == "ok").sum())
     return [result(f"campaign: 100 dispersed full-descent runs on {os.cpu_count()} cores "
-                    "(whole command)", t, "s", 900.0),
+                    "(whole command)", t, "s", CAMPAIGN100_S),
             result("campaign: runs per minute (the runs' time)", 100 * 60 / runs_s, "runs/min"),
             result("campaign: runs ok (of 100)", ok, "", 100, at_least=True)]
+
+
+def bench_test(scratch: Scratch) -> list[Result]:
+    """`just test` as the README runs it (two pytest workers, single-threaded BLAS, the slow
+    and target tests left out), in the project folder."""
+    env = {**os.environ, **{v: "1" for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                                             "MKL_NUM_THREADS")}}
+    t0 = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "2", "--dist", "loadscope",
+                           "-m", "not slow and not targets", "-p", "no:cacheprovider"],
+                          cwd=workspace().root, env=env, stdout=subprocess.DEVNULL, check=False)
+    wall = time.perf_counter() - t0
+    return [result("test: `just test` (not slow, 2 workers)", wall, "s", TEST_SUITE_S),
+            result("test: the suite passed", float(done.returncode == 0), "", 1.0,
+                   at_least=True)]

@@ -6,7 +6,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from pipeline.config.checks import (
     MAX_SEED,
@@ -39,6 +38,8 @@ PHYSICAL_ONLY = ("pixel_sigma_px", "distortion", "camera_mounting_deg", "bearing
 
 def mounting_dcm(mounting_deg: tuple[float, ...]) -> np.ndarray:
     """dcm_body_from_cam (3, 3) of a camera mounting: (yaw, pitch, roll) deg, intrinsic ZYX."""
+    from scipy.spatial.transform import Rotation  # lazy: config loads without it
+
     z, y, x = np.radians(mounting_deg)
     return Rotation.from_euler("ZYX", [z, y, x]).as_matrix()
 

@@ -6,7 +6,6 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from pipeline.config.checks import _GRADE, PROPAGATION_LIMIT_S, _check, _num
 from pipeline.core.sensors import imu
@@ -137,4 +136,6 @@ class AltimeterConfig:
         if not any(self.beam_mounting_deg):
             return np.array([0.0, 0.0, 1.0])
         z, y, x = np.radians(self.beam_mounting_deg)
+        from scipy.spatial.transform import Rotation  # lazy: config loads without it
+
         return Rotation.from_euler("ZYX", [z, y, x]).as_matrix() @ np.array([0.0, 0.0, 1.0])

@@ -21,6 +21,7 @@ from pipeline.io.files import (
     sha256_file,
     write_failure,
 )
+from pipeline.io.tables import write_parquet
 from pipeline.vocab.tables import check_table
 
 if TYPE_CHECKING:
@@ -74,8 +75,8 @@ class StageTransaction:
         check_table(name, frame)
         path = self.output(f"{name}.parquet")
         try:
-            frame.write_parquet(path)
-        except Exception as exc:  # polars' ComputeError on ENOSPC names no file
+            write_parquet(frame, path)
+        except Exception as exc:  # a failed write (ENOSPC) as one line naming the file
             raise write_failure(exc, path) from None
         self.tables.append(name)
         self.rows[name] = frame.height

@@ -25,6 +25,7 @@ from PIL import Image, ImageDraw, UnidentifiedImageError
 from pipeline.core.vision.detectors import Detections, Detector
 from pipeline.core.vision.sun_direction import SunEstimate, estimate_sun_direction, sun_from_rims
 from pipeline.errors import PipelineError
+from pipeline.io.tables import write_parquet
 from pipeline.ops.render import match_detections
 
 MAX_PIXELS = 400_000_000  # 20,000 x 20,000
@@ -285,7 +286,7 @@ def run(paths: list[Path], detector: Detector, out_dir: Path, sun_azimuth_deg: f
     out = out_dir / "detections.parquet"
     frame = pl.concat(parts) if parts else pl.DataFrame(schema=DETECTIONS_SCHEMA)
     tmp = out.with_suffix(".parquet.tmp")
-    frame.write_parquet(tmp)
+    write_parquet(frame, tmp)
     tmp.replace(out)
     lines.append(f"wrote {out} ({frame.height:,} craters in {len(parts)} images)")
     return lines, failed

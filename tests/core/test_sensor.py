@@ -127,6 +127,18 @@ def field() -> Craters:
 # --- crater_normals -------------------------------------------------------------------------------
 
 
+def test_splitmix64_matches_the_reference_generator() -> None:
+    """Vigna's splitmix64.c from state 0: next() adds the golden gamma, then mixes; its first
+    three outputs (the published test vector), and the input left untouched."""
+    gamma = np.uint64(0x9E3779B97F4A7C15)
+    with np.errstate(over="ignore"):
+        states = np.arange(3, dtype=np.uint64) * gamma
+    before = states.copy()
+    got = sensor._splitmix64(states)
+    assert [int(v) for v in got] == [0xE220A8397B1DCDAF, 0x6E789E6AA1B965F4, 0x06C45D188009454F]
+    np.testing.assert_array_equal(states, before)
+
+
 def test_crater_normals_depend_only_on_seed_and_crater_id() -> None:
     ids = np.arange(-50, 5000, 7, dtype=np.int64) * 1_000_003
     z = sensor.crater_normals(42, ids, 4)

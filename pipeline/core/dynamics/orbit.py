@@ -11,15 +11,16 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.integrate import OdeSolution, solve_ivp
-from scipy.optimize import brentq
-from scipy.spatial.transform import Rotation
 
 from pipeline.core.math import rotations
 from pipeline.core.math.constants import MOON_GM_M3_S2, MOON_RADIUS_M
 from pipeline.core.math.rotations import cross
+
+if TYPE_CHECKING:
+    from scipy.integrate import OdeSolution
 
 
 def time_from_apoapsis_to_radius(apoapsis_radius_m: float, periapsis_radius_m: float,
@@ -60,6 +61,7 @@ def periapsis_radius_for_impact(apoapsis_radius_m: float, impact_time_s: float, 
         raise ValueError(f"impact time {impact_time_s} s is not between the radial free fall "
                          f"({excess_s(lo) + impact_time_s:.3f} s) and the half period "
                          f"({excess_s(hi) + impact_time_s:.3f} s)")
+    from scipy.optimize import brentq  # lazy: not paid by commands that never call this
     return float(brentq(excess_s, lo, hi, xtol=1e-7, rtol=4 * np.finfo(float).eps))
 
 
@@ -71,6 +73,8 @@ def apoapsis_state(apoapsis_radius_m: float, periapsis_radius_m: float, inclinat
     Perifocal to MCI is Rz(raan) Rx(inclination) Rz(argument of periapsis)."""
     ra, rp = float(apoapsis_radius_m), float(periapsis_radius_m)
     speed_m_s = np.sqrt(2.0 * gm_m3_s2 * rp / (ra * (ra + rp)))
+    from scipy.spatial.transform import Rotation  # lazy: config validation loads this module
+
     dcm_mci_from_perifocal = Rotation.from_euler(
         "ZXZ", [raan_rad, inclination_rad, arg_periapsis_rad]).as_matrix()
     r_mci_m = dcm_mci_from_perifocal @ np.array([-ra, 0.0, 0.0])
@@ -197,6 +201,8 @@ def propagate_descent(r0_mci_m: np.ndarray, v0_mci_m_s: np.ndarray, q0_mci_from_
     atol = np.concatenate([np.full(3, atol_m), np.full(3, atol_m * np.sqrt(gm_m3_s2 / r0_norm**3)),
                            np.full(4, atol_m / r0_norm)])
     kinks_s = np.zeros(0) if jitter is None else jitter.kinks_s
+    from scipy.integrate import OdeSolution, solve_ivp  # lazy: ~0.5 s, the propagation only
+
     bounds_s = np.concatenate([[0.0], kinks_s[(kinks_s > 0.0) & (kinks_s < t_max_s)], [t_max_s]])
     y = np.concatenate([r0, v0, q0 / np.linalg.norm(q0)])
     ts_s, interpolants, step_s = [0.0], [], None

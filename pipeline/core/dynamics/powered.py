@@ -26,7 +26,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import brentq
 
 from pipeline.core.dynamics.gravity import gravity_xyz
 from pipeline.core.math.constants import MOON_GM_M3_S2, MOON_RADIUS_M, MOON_ROTATION_RATE_RAD_S
@@ -352,6 +351,7 @@ def find_contact(before: LanderState, after: LanderState,
     def alt_at(s: float) -> float:
         return alt(before.t_s + s * dt, _hermite(before, after, s)[0])
 
+    from scipy.optimize import brentq  # lazy: not paid by commands that never call this
     s = float(brentq(alt_at, 0.0, 1.0, xtol=1e-9 / dt, rtol=4 * np.finfo(float).eps))
     r, v = _hermite(before, after, s)
     q = q_multiply(before.q_mci_from_body, q_exp(after.omega_body_rad_s * (s * dt)))

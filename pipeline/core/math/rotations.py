@@ -12,7 +12,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -59,6 +58,7 @@ def dcm_from_q(q_a_from_b: np.ndarray) -> np.ndarray:
 
 def q_from_dcm(dcm_a_from_b: np.ndarray) -> np.ndarray:
     """Scalar-last quaternion (..., 4) q_a_from_b of DCMs (..., 3, 3); sign chosen with w >= 0."""
+    from scipy.spatial.transform import Rotation  # lazy: not paid by commands that never call this
     q = Rotation.from_matrix(dcm_a_from_b).as_quat()
     return np.where(q[..., 3:4] < 0, -q, q)
 

@@ -20,7 +20,6 @@ from functools import cache
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
-from scipy.stats import chi2
 
 from pipeline.core.body.surface import Sphere, Surface
 from pipeline.core.estimation import measurement
@@ -140,6 +139,8 @@ class Gates:
 
 @cache
 def _threshold(probability: float, dof: int) -> float:
+    from scipy.stats import chi2  # lazy: scipy.stats costs ~1 s to import
+
     return float(chi2.ppf(probability, dof))
 
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 
 from pipeline.core.math.rotations import q_log, q_multiply
 
@@ -134,6 +133,7 @@ def draw_triad(rng: np.random.Generator, errors: TriadErrors, n_samples: int, dt
     a = float(np.exp(-dt_s / errors.bias_correlation_s))
     w = rng.standard_normal((n_samples, 3))
     w[0] /= np.sqrt(1.0 - a * a)  # the first value from the stationary distribution
+    from scipy.signal import lfilter  # lazy: not paid by commands that never call this
     gm = lfilter([errors.bias_instability_sigma * np.sqrt(1.0 - a * a)], [1.0, -a], w, axis=0)
     return TriadDraw(matrix, turn_on[None, :] + gm)
 

@@ -31,12 +31,16 @@ _U64 = np.uint64
 
 
 def _splitmix64(x: np.ndarray) -> np.ndarray:
-    """The splitmix64 finaliser (Steele, Lea & Flood, OOPSLA 2014): a bijective 64-bit mix."""
+    """The splitmix64 finaliser (Steele, Lea & Flood, OOPSLA 2014): a bijective 64-bit mix of
+    uint64 values (in place on one fresh array: the whole catalogue's draws are 10 M values)."""
     with np.errstate(over="ignore"):
-        x = (x + _U64(0x9E3779B97F4A7C15)).astype(np.uint64)
-        x = ((x ^ (x >> _U64(30))) * _U64(0xBF58476D1CE4E5B9)).astype(np.uint64)
-        x = ((x ^ (x >> _U64(27))) * _U64(0x94D049BB133111EB)).astype(np.uint64)
-        return x ^ (x >> _U64(31))
+        x = np.asarray(x, dtype=np.uint64) + _U64(0x9E3779B97F4A7C15)
+        x ^= x >> _U64(30)
+        x *= _U64(0xBF58476D1CE4E5B9)
+        x ^= x >> _U64(27)
+        x *= _U64(0x94D049BB133111EB)
+        x ^= x >> _U64(31)
+        return x
 
 
 def crater_normals(seed: int, crater_id: np.ndarray, n: int) -> np.ndarray:
@@ -47,9 +51,17 @@ def crater_normals(seed: int, crater_id: np.ndarray, n: int) -> np.ndarray:
     k = np.arange(2 * n, dtype=np.uint64)
     with np.errstate(over="ignore"):
         bits = _splitmix64(base[:, None] + k[None, :] * _U64(0xD1B54A32D192ED03))
-    u = ((bits >> _U64(11)).astype(np.float64) + 0.5) / 2.0**53  # in (0, 1)
-    u1, u2 = u[:, 0::2], u[:, 1::2]
-    return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * np.pi * u2)
+    bits >>= _U64(11)
+    u = bits.astype(np.float64)
+    u += 0.5
+    u /= 2.0**53  # in (0, 1)
+    radius = np.log(u[:, 0::2])  # sqrt(-2 log u1) cos(2 pi u2), in place (N x n values)
+    radius *= -2.0
+    np.sqrt(radius, out=radius)
+    turn = 2.0 * np.pi * u[:, 1::2]
+    np.cos(turn, out=turn)
+    radius *= turn
+    return radius
 
 
 @dataclass(frozen=True)

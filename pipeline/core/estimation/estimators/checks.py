@@ -31,7 +31,6 @@ from functools import cache
 
 import numpy as np
 from scipy.linalg import lapack
-from scipy.stats import chi2
 
 from pipeline.core.estimation.estimators.base import (
     MAX_CONDITION,
@@ -74,6 +73,8 @@ class CheckOptions:
 
 @cache
 def _chi2_threshold(probability: float, dof: int) -> float:
+    from scipy.stats import chi2  # lazy: scipy.stats costs ~1 s to import
+
     return float(chi2.isf(1.0 - probability, dof))
 
 

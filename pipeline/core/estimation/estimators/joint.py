@@ -10,7 +10,6 @@ from functools import cache
 from typing import ClassVar
 
 import numpy as np
-from scipy.stats import chi2
 
 from pipeline.core.estimation.estimators.base import (
     EPS,
@@ -283,6 +282,8 @@ class JointEstimator(Estimator):
 
 @cache
 def _chi2_isf(tail: float, dof: int) -> float:
+    from scipy.stats import chi2  # lazy: scipy.stats costs ~1 s to import
+
     return float(chi2.isf(tail, dof))
 
 

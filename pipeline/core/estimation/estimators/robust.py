@@ -11,7 +11,6 @@ from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
-from scipy.stats import chi2
 
 from pipeline.core.estimation.estimators.base import Estimator, PoseEstimate, failed
 from pipeline.core.estimation.estimators.bearings import absolute_orientation, crater_costs, p3p
@@ -39,6 +38,8 @@ class RobustOptions:
 def _chi2_gate(probability: float, dof: int = 3) -> float:
     """Chi-square quantile with `dof` (1 range + 2 bearing tangent; 2 without a range) at
     `probability`."""
+    from scipy.stats import chi2  # lazy: scipy.stats costs ~1 s to import
+
     return float(chi2.ppf(probability, dof))
 
 
