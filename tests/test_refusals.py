@@ -11,7 +11,6 @@ import os
 import sys
 from pathlib import Path
 
-import polars as pl
 import pytest
 from test_cli import TINY, assert_clear_error, main
 
@@ -33,15 +32,16 @@ def tiny_scenario(workdir: Path) -> Path:
 
 def test_a_full_disk_in_a_stage_table_is_one_line_naming_the_file(tiny_scenario, monkeypatch,
                                                                   capsys):
-    real = pl.DataFrame.write_parquet
+    import pyarrow.parquet as pq
 
-    def full(self, file, *args, **kwargs):
-        if Path(file).name == "imu.parquet":
-            raise pl.exceptions.ComputeError("failed to write: No space left on device "
-                                             "(os error 28)")
-        return real(self, file, *args, **kwargs)
+    real = pq.write_table
 
-    monkeypatch.setattr(pl.DataFrame, "write_parquet", full)
+    def full(table, where, *args, **kwargs):  # as Arrow raises ENOSPC: no file name
+        if Path(where).name == "imu.parquet":
+            raise OSError("IOError: No space left on device (os error 28)")
+        return real(table, where, *args, **kwargs)
+
+    monkeypatch.setattr(pq, "write_table", full)
     code, _, err = main(monkeypatch, capsys, "run", "tiny")
     assert "Traceback" not in err
     assert_clear_error(code, err[err.index("error: "):], "imu.parquet", "No space left on device")

@@ -22,7 +22,6 @@ from pipeline.io.files import (
     write_failure,
 )
 from pipeline.io.tables import write_parquet
-from pipeline.vocab.tables import check_table
 
 if TYPE_CHECKING:
     from pipeline.io.store import RunStore
@@ -72,6 +71,8 @@ class StageTransaction:
     def table(self, name: str, frame: Any) -> Path:
         """Write a polars DataFrame as `<name>.parquet`, a table of the run (SQL: `name`), once
         it matches its declared schema (`pipeline.vocab.tables`; TableSchemaError if not)."""
+        from pipeline.vocab.tables import check_table  # lazy: the schemas import the core
+
         check_table(name, frame)
         path = self.output(f"{name}.parquet")
         try:

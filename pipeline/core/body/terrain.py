@@ -37,7 +37,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from pipeline.core.body import tiles
 from pipeline.core.body.noise import FractalNoise
@@ -277,6 +276,8 @@ class Terrain:
         e_hat, n_hat = tangent_basis(up)
         shift = east * e_hat + north * n_hat
         rotvec = np.cross(up, shift) / self.reference_radius_m  # moves the site by `shift`
+        from scipy.spatial.transform import Rotation  # lazy: loading a config needs no scipy
+
         dcm_truth_from_map = Rotation.from_rotvec(rotvec).as_matrix().T
         return Terrain(self._gen, dcm_truth_from_map,
                        errors.bias_m + errors.bias_sigma_m * draw[2], errors.resolution_m,

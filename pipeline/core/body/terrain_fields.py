@@ -26,7 +26,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import healpy as hp
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
@@ -80,6 +79,8 @@ def lowpass_grid(grid: LatLonGrid, fwhm_m: float, radius_m: float, lmax: int = 4
                  nside: int = 256) -> LatLonGrid:
     """The grid smoothed on the sphere by a Gaussian beam of FWHM fwhm_m (via healpy spherical
     harmonics up to lmax), resampled on the same grid."""
+    import healpy as hp  # lazy: healpy brings matplotlib; only a base grid needs it
+
     base = BaseField(grid, radius_m)
     th, ph = hp.pix2ang(nside, np.arange(hp.nside2npix(nside)))
     hmap = base.height_m(np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph),
@@ -92,6 +93,8 @@ def lowpass_grid(grid: LatLonGrid, fwhm_m: float, radius_m: float, lmax: int = 4
 
 def _alm_to_grid(alm: np.ndarray, nside: int, shape: tuple[int, ...], source: str
                  ) -> LatLonGrid:
+    import healpy as hp  # lazy: healpy brings matplotlib; only a base grid needs it
+
     hmap = hp.alm2map(alm, nside)
     lat, lon = _grid_latlon(shape[0], shape[1])
     lat_g, lon_g = np.meshgrid(lat, lon, indexing="ij")
@@ -104,6 +107,8 @@ def synthetic_base_grid(seed: int, fwhm_m: float, radius_m: float, lmax: int = 2
     """A seeded synthetic long-wavelength field: Gaussian spherical-harmonic coefficients of
     degree variance LOLA_CL_AMPLITUDE_M2 l^-LOLA_CL_SLOPE (l >= 1; module docstring), times a
     Gaussian beam of FWHM fwhm_m."""
+    import healpy as hp  # lazy: healpy brings matplotlib; only a base grid needs it
+
     rng = stream(seed, "terrain_base")
     ell = np.arange(lmax + 1, dtype=float)
     cl = np.where(ell >= 1, LOLA_CL_AMPLITUDE_M2 * np.maximum(ell, 1.0) ** -LOLA_CL_SLOPE, 0.0)
