@@ -23,7 +23,8 @@ from pipeline.errors import PipelineError
 from pipeline.io.store import RunStore
 from pipeline.workspace import workspace
 
-COMMANDS = {"run", "ingest", "trajectory", "imu", "render", "detect", "estimate", "navigate",
+COMMANDS = {"run", "ingest", "trajectory", "imu", "render", "detect", "estimate", "fly",
+            "navigate",
             "score", "sweep", "campaign", "compare", "sql", "view", "stages", "bench",
             "detect-image"}
 RECORDINGS = ["detect/detection.rrd", "estimate/estimation.rrd", "imu/imu.rrd",
