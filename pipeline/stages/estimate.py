@@ -9,6 +9,7 @@ import polars as pl
 
 from pipeline.config import RunConfig
 from pipeline.core.estimation.estimators import CheckOptions, RobustOptions
+from pipeline.core.estimation.estimators.checks import ML_STEPS
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
@@ -21,6 +22,7 @@ def options(cfg: RunConfig) -> EstimateOptions:
     """The navigator's options of a run."""
     e, d = cfg.estimation, cfg.detection
     sigma_bearing, sigma_range_m = cfg.navigator_sigmas()
+    noise = cfg.sensor_noise(navigator=True)
     robust = (RobustOptions(e.gate_probability, e.ransac_max_hypotheses, e.ransac_confidence)
               if e.robust else None)
     return EstimateOptions(
@@ -28,8 +30,9 @@ def options(cfg: RunConfig) -> EstimateOptions:
         sigma_bearing=sigma_bearing, sigma_range_m=sigma_range_m,
         step_tol_m=e.step_tol_m, max_iterations=e.max_iterations, robust=robust,
         checks=CheckOptions(consistency_probability=e.consistency_probability,
-                            max_condition=e.max_condition, moon_radius_m=MOON_RADIUS_M),
-        cap=d.max_craters, sensor_noise=cfg.sensor_noise(navigator=True))
+                            max_condition=e.max_condition, moon_radius_m=MOON_RADIUS_M,
+                            ml_steps=0 if noise is None else ML_STEPS),
+        cap=d.max_craters, sensor_noise=noise)
 
 
 def run(ctx: StageContext) -> StageResult:

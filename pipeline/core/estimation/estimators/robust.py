@@ -22,6 +22,11 @@ from pipeline.core.scoring.status import Status
 RANSAC_LOOSE_FACTOR = 10.0
 RANSAC_BATCH = 8  # hypotheses scored per vectorised batch
 MAX_GATE_ITERATIONS = 10  # robust refit-and-gate passes
+# A consensus whose bearings all lie within this angle of their mean direction is
+# `ill_conditioned`: a few craters within a small cone fit a wrong pose as well as the true one
+# (false matches agreeing by chance, 0.3-3 km off at ~0.1 deg), whatever its covariance says;
+# 0.5 deg is ~1/90 of the 45 deg field of view.
+MIN_CONSENSUS_SPREAD_RAD = np.radians(0.5)
 
 
 @dataclass(frozen=True)
@@ -144,6 +149,20 @@ def robust_fit(estimator: Estimator, c_mci_m: np.ndarray, u_body: np.ndarray, rh
             est.r_mci_m, est.q_mci_from_body, c[valid], u[valid], rho[valid],
             sigma_bearing=sigma_b, sigma_range_m=sigma_r) <= gate
         if np.array_equal(kept, use):
-            return est
+            return _spread(est, u)
         use, prior = kept, est.r_mci_m
+    return _spread(est, u)
+
+
+def _spread(est: PoseEstimate, u: np.ndarray) -> PoseEstimate:
+    """`est`, or `ill_conditioned` when the bearings (n, 3) of its inliers lie within
+    MIN_CONSENSUS_SPREAD_RAD of their mean direction."""
+    if est.status != Status.OK:
+        return est
+    b = u[est.inliers]
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    mean = b.sum(axis=0)
+    mean /= np.linalg.norm(mean)
+    if float(np.arccos(np.clip((b @ mean).min(), -1.0, 1.0))) < MIN_CONSENSUS_SPREAD_RAD:
+        return failed(Status.ILL_CONDITIONED, est.inliers, est.iterations)
     return est
