@@ -24,8 +24,7 @@ from pipeline.io.store import RunStore
 from pipeline.workspace import workspace
 
 COMMANDS = {"run", "ingest", "trajectory", "imu", "render", "detect", "estimate", "fly",
-            "navigate",
-            "score", "sweep", "campaign", "compare", "sql", "view", "stages", "bench",
+            "navigate", "score", "sweep", "campaign", "compare", "sql", "view", "stages", "bench",
             "detect-image"}
 RECORDINGS = ["detect/detection.rrd", "estimate/estimation.rrd", "imu/imu.rrd",
               "navigate/navigation.rrd", "score/scoring.rrd", "trajectory/trajectory.rrd"]
