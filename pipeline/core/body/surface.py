@@ -72,6 +72,11 @@ class Surface(Protocol):
         """Height (m) of points r_mcmf_m (..., 3) above the surface point below them."""
         ...
 
+    def unresolved_relief_m(self, resolution_m: float) -> float:
+        """A bound (m) of the relief finer than resolution_m: what a read at that resolution
+        leaves out (0 for a smooth surface)."""
+        ...
+
     def rim_crest_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
                             degradation: np.ndarray | None = None) -> np.ndarray:
         """Height (m) above the reference sphere of the rim crests of craters centred at
@@ -119,6 +124,9 @@ class Sphere:
 
     def altitude_m(self, r_mcmf_m: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         return np.linalg.norm(np.asarray(r_mcmf_m, dtype=float), axis=-1) - self.reference_radius_m
+
+    def unresolved_relief_m(self, resolution_m: float) -> float:
+        return 0.0
 
     def rim_crest_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
                             degradation: np.ndarray | None = None) -> np.ndarray:

@@ -407,6 +407,11 @@ class Terrain:
         return crater_relief_m(np.ones(d.shape), d, degradation, self.opts.floor_fraction,
                                self.opts.ejecta_extent)
 
+    def unresolved_relief_m(self, resolution_m: float) -> float:
+        """The generator's bound of the craters and roughness finer than the level that
+        resolution_m reads (`_Generator.margin_m`)."""
+        return float(self._gen.margin_m(self._order(np.array([float(resolution_m)]), 1))[0])
+
     @property
     def max_height_m(self) -> float:
         """The highest the terrain can reach (m): its base's top plus the crater and roughness
