@@ -1,9 +1,10 @@
 """The altimeter over a rough map when the navigator knows its horizontal position only to
-hundreds of metres (`AltimeterModel`): read at the footprint, the map's metre-scale slopes,
-linearised, steer the horizontal state and the update is over-confident; read at the scale of
-the horizontal 1-sigma with the unresolved relief in its noise, the updated position stays
-consistent with its covariance (NEES over seeded navigators inside its chi-square band), and a
-navigator that knows where it is reads the footprint as before."""
+hundreds of metres (`AltimeterModel`): read at the footprint, the map's slopes, linearised,
+steer the horizontal state and the update is over-confident (NEES in the hundreds to tens of
+thousands); the model reads altitude only there (the slope and the unresolved relief in its
+noise), and the updated position stays consistent with its covariance (NEES over seeded
+navigators inside its chi-square band); a navigator that knows where it is reads the footprint
+with the map's normal, as before."""
 
 from __future__ import annotations
 
@@ -61,7 +62,7 @@ def _nees_after(sigma_h_m: float, relief_aware: bool) -> np.ndarray:
         else:  # the footprint's read alone: the pre-fix model
             from pipeline.core.navigation.models import _inject, predicted_range
 
-            r0, jac = predicted_range(rec.x, 0.0, TERRAIN, DOWN_BODY, 3.0)
+            r0, jac, _ = predicted_range(rec.x, 0.0, TERRAIN, DOWN_BODY, 3.0)
             up = eskf.information_update(rec.p, eskf.POSE, np.array([rho - r0]),
                                          jac[None, :])
             _inject(rec, up)

@@ -192,9 +192,7 @@ class PoseFixModel:
         return up.nis, 6
 
 
-# the map's bound of its unresolved relief taken as 2 sigma: seeded navigators 30-1,000 m off
-# horizontally over a cratered, rough map keep a position NEES of 3.1-3.4 for 3 after an update
-# (3.3-4.2 at 3 sigma; tests/core/test_altimeter_terrain.py)
+# the map's bound of its unresolved relief (craters and roughness below the level read) as 2 sigma
 RELIEF_BOUND_SIGMAS = 2.0
 
 
@@ -202,31 +200,36 @@ class AltimeterModel:
     """A slant range along the altimeter's beam to the navigator's map (1 dof). On the sphere,
     the range and its Jacobian in MCI (`eskf.altimeter_jacobian`); on another surface, the ray
     meets it in MCMF and the Jacobian takes its normal n at the hit point:
-    d rho = -n^T (dr + rho db) / (n^T b). The map is read at the beam's footprint or at the
-    navigator's horizontal 1-sigma, whichever is coarser: a position known to hundreds of metres
-    cannot use the map's metre-scale slopes (linearised there, they steer the state wrong), so
-    it reads the terrain smoothed to that scale, and the relief the smoothing leaves out
-    (`Surface.unresolved_relief_m`, a bound taken as `RELIEF_BOUND_SIGMAS` sigma) joins the
-    range's noise. A navigator that knows where it is reads the footprint, as before."""
+    d rho = -n^T (dr + rho db) / (n^T b). A navigator whose horizontal 1-sigma exceeds the beam's
+    footprint cannot use the map's slopes (linearised over hundreds of metres of error, they
+    steer the horizontal state wrong, and one update after another collapses its covariance):
+    it reads the map smoothed to its horizontal 1-sigma, takes the local vertical for the
+    normal (the altimeter then tells altitude, not where it is), and the range's noise gains the
+    slope times that sigma and the relief the smoothing leaves out (`Surface.
+    unresolved_relief_m`, a bound taken as `RELIEF_BOUND_SIGMAS` sigma). A navigator that knows
+    where it is reads the footprint with the map's normal, as before."""
 
     kind: ClassVar[str] = "altimeter"
 
     def apply(self, rec: Record, m: AltimeterSample, opts: FilterOptions, gates: Gates
               ) -> tuple[float, int]:
         footprint = max(m.rho_m * opts.altimeter_footprint_rad, 0.5)
-        resolution, sigma = footprint, m.sigma_m
+        horizontal = 0.0
         if not isinstance(opts.surface, Sphere):
             up = rec.x.r_mci_m / np.linalg.norm(rec.x.r_mci_m)
             p_r = rec.p[:3, :3]
             horizontal = math.sqrt(max(0.5 * (np.trace(p_r) - up @ p_r @ up), 0.0))
-            if horizontal > footprint:
-                resolution = horizontal
-                sigma = math.hypot(sigma, opts.surface.unresolved_relief_m(horizontal)
-                                   / RELIEF_BOUND_SIGMAS)
-        rho, jac = predicted_range(rec.x, m.t_s, opts.surface, opts.altimeter_beam_body,
-                                   resolution)
+        loose = horizontal > footprint
+        rho, jac, slope_share = predicted_range(rec.x, m.t_s, opts.surface,
+                                                opts.altimeter_beam_body,
+                                                horizontal if loose else footprint, loose)
         if not np.isfinite(rho):
             return 0.0, 0
+        sigma = m.sigma_m
+        if loose:
+            sigma = math.sqrt(sigma**2 + (opts.surface.unresolved_relief_m(horizontal)
+                                          / RELIEF_BOUND_SIGMAS) ** 2
+                              + (slope_share * horizontal) ** 2)
         e = np.array([(m.rho_m - rho) / sigma])
         j = jac[None, :] / sigma
         keep = gate(rec.p[np.ix_(POSE, POSE)], e[None], j[None], gates(1))
@@ -239,22 +242,31 @@ class AltimeterModel:
 
 
 def predicted_range(x: NavState, t_s: float, surface: Surface, beam_body: np.ndarray,
-                    resolution_m: float = 1.0) -> tuple[float, np.ndarray]:
+                    resolution_m: float = 1.0, level: bool = False
+                    ) -> tuple[float, np.ndarray, float]:
     """The range (m) the navigator predicts along the beam (body axes) to its map (read at
-    resolution_m: the beam's footprint), and its Jacobian (6,) over [dr (m), dtheta (rad)]."""
+    resolution_m: the beam's footprint), its Jacobian (6,) over [dr (m), dtheta (rad)], and the
+    range's change per metre of horizontal error that the map's slope gives. `level`: the
+    Jacobian takes the local vertical for the map's normal (the slope's share then goes to the
+    noise, not to the horizontal state: `AltimeterModel`)."""
     if isinstance(surface, Sphere):
-        return eskf.altimeter_jacobian(x, beam_body, surface.reference_radius_m)
+        rho, jac = eskf.altimeter_jacobian(x, beam_body, surface.reference_radius_m)
+        return rho, jac, 0.0
     dcm = dcm_from_q(x.q_mci_from_body)
     b = dcm @ beam_body
     to_mci = dcm_mci_from_mcmf(MOON_ROTATION_RATE_RAD_S * t_s)
     r_mcmf, b_mcmf = to_mci.T @ x.r_mci_m, to_mci.T @ b
     rho = float(surface.intersect(r_mcmf, b_mcmf, resolution_m))
     if not np.isfinite(rho):
-        return rho, np.zeros(6)
+        return rho, np.zeros(6), 0.0
     p_mcmf = r_mcmf + rho * b_mcmf
+    up = to_mci @ (p_mcmf / np.linalg.norm(p_mcmf))
     n = to_mci @ surface.normal(p_mcmf / np.linalg.norm(p_mcmf), resolution_m)
+    slope_share = float(np.linalg.norm(n - (n @ up) * up) / abs(n @ b))
+    if level:
+        n = up
     nb = float(n @ b)
-    return rho, np.concatenate([-n / nb, rho * (n @ dcm @ skew(beam_body)) / nb])
+    return rho, np.concatenate([-n / nb, rho * (n @ dcm @ skew(beam_body)) / nb]), slope_share
 
 
 class VelocimeterModel:
