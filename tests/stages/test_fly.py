@@ -3,9 +3,10 @@ the open-loop tables written from the flight, the touchdown's record and its sta
 config's refusals, one line naming the key.
 
 The flights here use the paper's sensor (Eq. 9 visibility, the coin flip) on the 5 km synthetic
-catalogue over the `landing` scenario's terrain and map, so that a whole descent takes seconds;
+catalogue over the `landing` scenario's terrain and map, so that a whole descent takes about a minute;
 the physical camera with tracking flies in the `landing` scenario (`just run landing`, the
-benchmarks, the slow test below).
+benchmarks, tests/stages/test_fly_scenarios.py). The flights are slow tests (`just test-slow`,
+CI); the limits, statuses and refusals run in `just test`.
 """
 
 from __future__ import annotations
@@ -56,6 +57,7 @@ def read(store: RunStore, name: str) -> pl.DataFrame:
     return pl.read_parquet(store.path(f"{name}.parquet"))
 
 
+@pytest.mark.slow  # a whole flight: `just test-slow` (and CI)
 def test_the_navigated_lander_lands_at_the_site(flown):
     t = read(flown, "touchdown").row(0, named=True)
     assert t["status"] == "landed", t["reason"]
@@ -71,6 +73,7 @@ def test_the_navigated_lander_lands_at_the_site(flown):
         t["miss_m"], rel=1e-9)
 
 
+@pytest.mark.slow  # a whole flight: `just test-slow` (and CI)
 def test_the_closed_loop_writes_the_open_loop_tables_with_their_columns(flown, catalogue_db):
     from conftest import small_config
 
@@ -94,6 +97,7 @@ def test_the_closed_loop_writes_the_open_loop_tables_with_their_columns(flown, c
     assert entry is not None and "fly" in entry["inputs"]
 
 
+@pytest.mark.slow  # a whole flight: `just test-slow` (and CI)
 def test_the_flights_detections_hold_the_craters_the_navigator_measured_against(flown):
     # over terrain the navigator's craters sit on its map's rim crests, not on the sphere: the
     # detections table carries them, so the single-frame fixes of `estimate` use them too
@@ -108,6 +112,7 @@ def test_the_flights_detections_hold_the_craters_the_navigator_measured_against(
     assert (est["status"] == "ok").mean() > 0.9
 
 
+@pytest.mark.slow  # a whole flight: `just test-slow` (and CI)
 def test_the_guidance_table_follows_the_phases_and_the_rocket_equation(flown):
     g = read(flown, "guidance")
     phases = [p for i, p in enumerate(g["phase"].to_list())
@@ -126,6 +131,7 @@ def test_the_guidance_table_follows_the_phases_and_the_rocket_equation(flown):
     assert np.max(np.abs(g["mass_belief_kg"].to_numpy() - m)) < 1e-6
 
 
+@pytest.mark.slow  # a whole flight: `just test-slow` (and CI)
 def test_out_of_fuel_is_never_a_landing(tmp_path, catalogue_db):
     # the engine burns 2.5 times the propellant its software books: the tanks run dry
     cfg = fast_landing("dry", catalogue_db, flight={"isp_scale": 0.4, "assumed_isp_scale": 1.0,
