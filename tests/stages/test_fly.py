@@ -3,8 +3,8 @@ the open-loop tables written from the flight, the touchdown's record and its sta
 config's refusals, one line naming the key.
 
 The flights here use the paper's sensor (Eq. 9 visibility, the coin flip) on the 5 km synthetic
-catalogue over the `landing` scenario's terrain and map, so that a whole descent takes about a minute;
-the physical camera with tracking flies in the `landing` scenario (`just run landing`, the
+catalogue over the `landing` scenario's terrain and map, so that a whole descent takes about a
+minute; the physical camera with tracking flies in the `landing` scenario (`just run landing`, the
 benchmarks, tests/stages/test_fly_scenarios.py). The flights are slow tests (`just test-slow`,
 CI); the limits, statuses and refusals run in `just test`.
 """
