@@ -278,7 +278,8 @@ def test_resume_follows_what_a_run_depends_on(workdir: Path, catalogue_db: Path)
     assert run_campaign(load_spec(str(more.path)), local=True)["ran"] == 3
     assert run_campaign(load_spec(str(more.path)), local=True)["ran"] == 0
     path = Path(more.path)
-    path.write_text(path.read_text().replace("seed = 7\n", 'seed = 7\ntarget = "estimate"\n'))
+    # (a target that still reads the dispersed imu.grade: one that does not is refused at load)
+    path.write_text(path.read_text().replace("seed = 7\n", 'seed = 7\ntarget = "navigate"\n'))
     assert run_campaign(load_spec(str(path)), local=True)["ran"] == 3
 
 
