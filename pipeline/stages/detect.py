@@ -20,6 +20,7 @@ from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.errors import StageInputError
 from pipeline.io import ephemeris
 from pipeline.io.catalogue import check_catalogue_unchanged, load_recorded_catalogue
+from pipeline.io.catalogue.db import Catalogue
 from pipeline.io.pair_index import PairIndexStore
 from pipeline.io.tables import reduced
 from pipeline.ops.detect import detect_all, model_of
@@ -72,6 +73,20 @@ def identify_options(cfg: RunConfig) -> IdentifyOptions:
         checks=est.checks, filter=n.filter, restart_sigma=sigma)
 
 
+def lost_in_space_indexes(cfg: RunConfig, craters: Catalogue) -> IndexCache:
+    """The lost-in-space pair indexes of the catalogue, kept in `identification.index_dir`
+    (built once per region and size range; the catalogue's key names them)."""
+    index_dir = workspace().resolve(cfg.identification.index_dir)
+    try:
+        index_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StageInputError(f"identification.index_dir = {cfg.identification.index_dir!r}: "
+                              f"cannot keep the lost-in-space indexes there ({exc.strerror})"
+                              ) from None
+    return IndexCache(craters, PairIndexStore(index_dir, craters.meta["key"]),
+                      cfg.detection.detect_min_diameter_px)
+
+
 def run(ctx: StageContext) -> StageResult:
     cfg, tx = ctx.cfg, ctx.tx
     trajectory = pl.read_parquet(ctx.input("trajectory.parquet"))
@@ -86,15 +101,7 @@ def run(ctx: StageContext) -> StageResult:
                                                   sun)
     else:
         assert sun is not None  # the config asks for an epoch with the physical sensor
-        index_dir = workspace().resolve(ident.index_dir)
-        try:
-            index_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise StageInputError(f"identification.index_dir = {ident.index_dir!r}: cannot "
-                                  f"keep the lost-in-space indexes there ({exc.strerror})"
-                                  ) from None
-        indexes = IndexCache(craters, PairIndexStore(index_dir, craters.meta["key"]),
-                             cfg.detection.detect_min_diameter_px)
+        indexes = lost_in_space_indexes(cfg, craters)
         with progress_bar(f"detecting and identifying craters ({ident.mode})",
                           trajectory.height) as advance:
             detections, frames_table = identify_all(

@@ -20,14 +20,11 @@ from pipeline.core.body.terrain_fields import LatLonGrid
 from pipeline.core.guidance import ApolloOptions
 from pipeline.core.guidance.fly import TouchdownLimits
 from pipeline.core.math.frames import latlon_from_mcmf, unit_mcmf_from_latlon
-from pipeline.core.sensors.detection import CraterArrays
-from pipeline.core.vision.index_cache import IndexCache
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.errors import StageInputError
 from pipeline.io import ephemeris, lunar_dem
 from pipeline.io.catalogue import check_catalogue_unchanged, load_recorded_catalogue
-from pipeline.io.pair_index import PairIndexStore
 from pipeline.ops import flight_tables as tables
 from pipeline.ops.detect import model_of
 from pipeline.ops.detect import tables as detection_tables
@@ -38,10 +35,9 @@ from pipeline.ops.surfaces import SurfaceOptions
 from pipeline.sim.flight_software import SensorBelief
 from pipeline.sim.loop import Rates
 from pipeline.sim.world import AltimeterTruth, VelocimeterTruth
-from pipeline.stages.detect import identify_options
+from pipeline.stages.detect import identify_options, lost_in_space_indexes
 from pipeline.stages.navigate import options as navigate_options
 from pipeline.viz.draw.fly import record_fly
-from pipeline.workspace import workspace
 
 
 def terrain_options(cfg: RunConfig) -> tuple[TerrainOptions | None, LatLonGrid | None]:
@@ -114,18 +110,6 @@ def options(cfg: RunConfig) -> FlyOptions:
                                f.max_tilt_deg, f.max_slope_deg, f.slope_baseline_m))
 
 
-def _indexes(cfg: RunConfig, craters: CraterArrays, key: str) -> IndexCache:
-    index_dir = workspace().resolve(cfg.identification.index_dir)
-    try:
-        index_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise StageInputError(f"identification.index_dir = {cfg.identification.index_dir!r}: "
-                              f"cannot keep the lost-in-space indexes there ({exc.strerror})"
-                              ) from None
-    return IndexCache(craters, PairIndexStore(index_dir, key),
-                      cfg.detection.detect_min_diameter_px)
-
-
 def run(ctx: StageContext) -> StageResult:
     cfg, tx = ctx.cfg, ctx.tx
     o = options(cfg)
@@ -139,7 +123,7 @@ def run(ctx: StageContext) -> StageResult:
         sun_table = ephemeris.sun_mcmf_m(epoch, t_frames)
         sun = lambda t_s: sun_table[round(t_s * frame_rate)]  # noqa: E731
     if o.identify is not None:
-        indexes = _indexes(cfg, craters, craters.meta["key"])
+        indexes = lost_in_space_indexes(cfg, craters)
     with progress_bar("flying the closed loop (s of flight)",
                       round(cfg.flight.max_duration_s)) as advance:
         done = [0]
