@@ -98,19 +98,9 @@ def _speed(results: list, result) -> None:
 
 
 def _images_scenario(scratch, results: list, result) -> None:
-    import polars as pl
+    from pipeline.bench.render import images_run
 
-    from pipeline.config import load_config
-    from pipeline.io.store import RunStore
-
-    (scratch.dir / "runs" / "scenarios" / "bench-images-learned.toml").write_text(
-        'extends = "images-learned"\n\n[render]\nstride = 10\n')
-    scratch.cli("run", "bench-images-learned")
-    store = RunStore("bench-images-learned", scratch.dir / "runs")
-    facts = store.info("render")
-    window = load_config("images").scoring.table_window
-    nav = pl.read_parquet(store.path("navigation_summary.parquet")).filter(
-        (pl.col("source") == "filter") & (pl.col("window") == window))
+    _, facts, nav, window = images_run(scratch, "images-learned")
     n = facts["frames"]
     tag = f"detector learned, images scenario ({n} frames)"
     results += [

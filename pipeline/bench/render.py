@@ -3,6 +3,8 @@ them."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from pipeline.bench.common import (
@@ -14,19 +16,27 @@ from pipeline.config import load_config
 from pipeline.io.store import RunStore
 
 
-def bench_render(scratch: Scratch) -> list[Result]:
-    """The `images` scenario with every 10th frame rendered (31 images of 1024 x 1024 px):
-    render and detect times, the detector against the true rims, the navigation from pixels."""
+def images_run(scratch: Scratch, scenario: str) -> tuple[RunStore, dict, Any, str]:
+    """`scenario` (an `images` scenario) run in the scratch folder with every 10th frame
+    rendered: its store, the render stage's facts, the filter's row of the scored window and the
+    window's name."""
     import polars as pl
 
-    (scratch.dir / "runs" / "scenarios" / "bench-images.toml").write_text(
-        'extends = "images"\n\n[render]\nstride = 10\n')
-    scratch.cli("run", "bench-images")
-    store = RunStore("bench-images", scratch.dir / "runs")
-    facts = store.info("render")
+    run_id = f"bench-{scenario}"
+    (scratch.dir / "runs" / "scenarios" / f"{run_id}.toml").write_text(
+        f'extends = "{scenario}"\n\n[render]\nstride = 10\n')
+    scratch.cli("run", run_id)
+    store = RunStore(run_id, scratch.dir / "runs")
     window = load_config("images").scoring.table_window
     nav = pl.read_parquet(store.path("navigation_summary.parquet")).filter(
         (pl.col("source") == "filter") & (pl.col("window") == window))
+    return store, store.info("render"), nav, window
+
+
+def bench_render(scratch: Scratch) -> list[Result]:
+    """The `images` scenario with every 10th frame rendered (31 images of 1024 x 1024 px):
+    render and detect times, the detector against the true rims, the navigation from pixels."""
+    store, facts, nav, window = images_run(scratch, "images")
     rrd = store.path("render.rrd").stat().st_size / 2**20
     n = facts["frames"]
     return [
