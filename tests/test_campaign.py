@@ -150,6 +150,7 @@ def test_each_dispersion_reaches_its_run(workdir: Path, catalogue_db: Path):
         report
 
 
+@pytest.mark.slow
 def test_failed_runs_are_recorded_and_a_campaign_resumes(spec_file: str,
                                                          monkeypatch: pytest.MonkeyPatch):
     spec = load_spec(spec_file)
@@ -224,6 +225,7 @@ def test_a_campaign_across_a_two_node_cluster(workdir: Path, catalogue_db: Path)
         cluster.shutdown()
 
 
+@pytest.mark.slow
 def test_a_seed_grid_and_a_base_given_as_a_path(workdir: Path, catalogue_db: Path):
     """The sweep's way: the seeds as a grid, the base a scenario file beside the spec."""
     (workdir / "runs" / "campaigns").mkdir(parents=True)
@@ -248,6 +250,7 @@ def test_a_seed_grid_and_a_base_given_as_a_path(workdir: Path, catalogue_db: Pat
     assert scores.filter(pl.col("run") >= 2)["n_used"].max() > 10
 
 
+@pytest.mark.slow
 def test_a_changed_spec_reruns_the_runs_it_changes(spec_file: str):
     spec = load_spec(spec_file)
     assert run_campaign(spec, local=True)["ran"] == 2

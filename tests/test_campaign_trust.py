@@ -23,6 +23,7 @@ from pipeline.errors import ConfigError, PipelineError
 PHYSICAL = ', epoch_utc = "2026-01-30T08:40:00Z"'
 
 
+@pytest.mark.slow
 def test_an_invalid_first_run_is_a_status_and_the_outputs_are_written(workdir: Path,
                                                                       catalogue_db: Path,
                                                                       capsys):
@@ -119,6 +120,7 @@ def test_a_dispersion_that_reaches_its_runs_is_accepted(workdir: Path, catalogue
                          body=f"[dispersions]\n{body}\n"))
 
 
+@pytest.mark.slow
 def test_a_ray_address_that_does_not_answer_is_one_line_within_seconds(workdir: Path,
                                                                        catalogue_db: Path,
                                                                        monkeypatch, capsys):

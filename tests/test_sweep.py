@@ -209,7 +209,9 @@ def test_caps_bound_the_craters_used(sweep):
 # --- the same numbers as ordinary runs ------------------------------------------------------------
 
 
-@pytest.mark.parametrize(("seed", "cap"), [(1, None), (2, None), (1, 10)])
+@pytest.mark.parametrize(("seed", "cap"), [pytest.param(1, None, marks=pytest.mark.slow),
+                                           pytest.param(2, None, marks=pytest.mark.slow),
+                                           (1, 10)])
 def test_sweep_scores_are_those_of_an_ordinary_run(sweep, seed, cap):
     """A run with detection.max_craters = cap and seed = seed gives, frame for frame and method for
     method, exactly the sweep's scores (same estimates, errors, bounds and NEES)."""

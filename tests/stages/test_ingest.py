@@ -94,6 +94,7 @@ def sha256(path: Path) -> str:
 # --- the real catalogues --------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_lu1319381(tmp_path):
     path = shared_file("lu1319381_partial.parquet")
     db = tmp_path / "lu.duckdb"

@@ -133,6 +133,7 @@ def test_navigation_config_reruns_only_navigation_and_scoring(tmp_path: Path,
     assert run_stages(imu_cfg, tmp_path, RUN) == ["imu", "navigate", "score"]
 
 
+@pytest.mark.slow
 def test_outage_loose_and_first_fix(tmp_path: Path, catalogue_db: Path) -> None:
     cfg = small_config("outage", catalogue_db, WINDOW,
                        navigation={"outage_start_s": 1940.0, "outage_end_s": 1970.0})

@@ -13,8 +13,8 @@ the row before it, half a turn away) and around in longitude. Two sources:
   Lunar Orbiter Laser Altimeter (LOLA)", GRL 37, L18204.
 
 Craters: each catalogue crater's profile (`pipeline.core.body.crater_shape`: Pike 1977 fresh
-morphometry and the ejecta taper, diffused by the crater's age; through `crater_relief_m`, the
-one adapter to the profile functions) over its footprint
+morphometry and the ejecta taper, diffused by the crater's age; `crater_relief_m` for given
+diameters, each crater's shape kept by the field) over its footprint
 (ejecta_extent radii), at horizontal distance = great-circle arc from the centre, summed. Craters
 are indexed by size class (diameter octaves, a k-d tree of unit vectors each); the tiles made
 together ask once per class for the craters whose footprint reaches them and that are at least
@@ -178,10 +178,12 @@ class CraterField:
                                                  self.diam_m.shape).copy())
         self.floor_fraction, self.extent, self.radius_m = floor_fraction, ejecta_extent, radius_m
         self.classes: list[_SizeClass] = []
+        self._shape = (np.empty(0), np.empty(0), np.empty(0))
         if not self.diam_m.size:
             self.rim_max_m = self.depth_max_m = 0.0
             return
-        depth, rim, _ = crater_depth_rim_m(self.diam_m, floor_fraction)  # fresh: the bounds
+        self._shape = crater_depth_rim_m(self.diam_m, floor_fraction)  # (depth, rim, floor)
+        depth, rim, _ = self._shape  # fresh: the bounds
         self.rim_max_m, self.depth_max_m = float(rim.max()), float(depth.max())
         k = np.floor(np.log2(self.diam_m)).astype(np.int64)
         for kv in np.unique(k):
@@ -244,37 +246,52 @@ class CraterField:
         if not rows.size:
             return out[:-1]
         padded = np.concatenate([nodes, nodes[:1]])
-        bn = padded[blocks]  # (B, 64, 3)
-        bc = bn.mean(axis=1)
-        bc /= np.linalg.norm(bc, axis=1, keepdims=True)
-        br = np.arccos(np.clip(np.einsum("bkj,bj->bk", bn, bc), -1, 1)).max(axis=1)
+        bc, br = _caps(padded[blocks])
         reach = self.extent * self.diam_m[rows] / 2.0 / self.radius_m
         ang = np.arccos(np.clip(self.u[rows] @ bc.T, -1, 1))  # (K, B)
         ci, bi = np.nonzero(ang <= br[None, :] + reach[:, None])
         if not ci.size:
             return out[:-1]
-        idx = blocks[bi]  # (P, 64)
+        # each block's quarters (`node_blocks` orders them so): a small crater's footprint
+        # meets one or two of them, and only their nodes are evaluated
+        q = 4 if blocks.shape[1] % 4 == 0 and blocks.shape[1] >= 16 else 1
+        quarters = blocks.reshape(blocks.shape[0] * q, -1)
+        qc, qr = _caps(padded[quarters])
+        qi = bi[:, None] * q + np.arange(q)[None, :]  # (P, q)
+        ang_q = np.arccos(np.clip(np.einsum("pj,pqj->pq", self.u[rows[ci]], qc[qi]), -1, 1))
+        meets = ang_q <= qr[qi] + reach[ci][:, None]
+        pi, si = np.nonzero(meets)
+        ci, idx = ci[pi], quarters[qi[pi, si]]  # (P', k / q)
         cu = self.u[rows[ci]]
-        chord = np.linalg.norm(padded[idx] - cu[:, None, :], axis=-1)
+        gap = padded[idx] - cu[:, None, :]
+        chord = np.sqrt(np.einsum("pki,pki->pk", gap, gap))
         r = rows[ci][:, None]
         rho = 2.0 * np.arcsin(np.minimum(chord / 2.0, 1.0)) * self.radius_m / (
             self.diam_m[r] / 2.0)
-        h = crater_relief_m(rho, self.diam_m[r],
-                            None if self.degradation is None else self.degradation[r],
-                            self.floor_fraction,
-                            self.extent)
-        valid = (rho < self.extent) & (idx < nodes.shape[0])
-        out += np.bincount(np.where(valid, idx, nodes.shape[0]).ravel(),
-                           np.where(valid, h, 0.0).ravel(), minlength=out.size)
+        pv, kv = np.nonzero((rho < self.extent) & (idx < nodes.shape[0]))  # the footprints
+        rv = rows[ci[pv]]
+        depth, rim, floor = (a[rv] for a in self._shape)
+        h = crater_shape.crater_profile(rho[pv, kv], depth, rim, floor, self.extent,
+                                        None if self.degradation is None
+                                        else self.degradation[rv])
+        out += np.bincount(idx[pv, kv], h, minlength=out.size)
         return out[:-1]
 
 
+def _caps(nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit centres (B, 3) and angular radii (B,) rad of groups of unit vectors (B, k, 3)."""
+    c = nodes.mean(axis=1)
+    c /= np.linalg.norm(c, axis=1, keepdims=True)
+    return c, np.arccos(np.clip(np.einsum("bkj,bj->bk", nodes, c).min(axis=1), -1, 1))
+
+
 def node_blocks(side: int, block: int = 8) -> np.ndarray:
-    """(B, block^2) indices of the nodes of a side x side grid in blocks; the ragged last blocks
-    are padded with side^2 (a padding index)."""
-    nb = -(-side // block)
+    """(B, block^2) indices of the nodes of a side x side grid in blocks, each block's quarters
+    (block / 2 squares) one after another; the ragged last blocks are padded with side^2 (a
+    padding index)."""
+    nb, half = -(-side // block), block // 2
     r = np.arange(nb * block)
     rr, cc = np.meshgrid(r, r, indexing="ij")
     flat = np.where((rr < side) & (cc < side), rr * side + cc, side * side)
-    return (flat.reshape(nb, block, nb, block).transpose(0, 2, 1, 3)
+    return (flat.reshape(nb, 2, half, nb, 2, half).transpose(0, 3, 1, 4, 2, 5)
             .reshape(nb * nb, block * block))

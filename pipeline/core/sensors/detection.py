@@ -206,7 +206,7 @@ class SensedFrame:
     columns: dict[str, np.ndarray]  # PHYSICAL_COLUMNS but rho_size_m, (n,) each
     n_candidates: int  # in the field of view and on the visible side, any size
     corners_mcmf_m: np.ndarray  # (4, 3)
-    n_shadowed: int = 0  # lit, resolvable candidates the terrain's shadow hid
+    n_shadowed: int = 0  # candidates detectable but for the terrain's shadow, which hid them
 
 
 def world_in_view(model: DetectionModel, craters: CraterArrays, world: sensor.World,
@@ -258,8 +258,6 @@ def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.W
     wide_enough = cam.fx_px * diam_true_m / (rho_m * cos_alpha**2) >= d.min_diameter_px
     keep = np.flatnonzero(in_view & lit & wide_enough)
     keep = keep[np.argsort(craters.crater_id[rows[keep]], kind="stable")]
-    shadowed = (np.zeros(keep.size, bool) if shadows is None else
-                shadows.shadowed(rows[keep], sun_mcmf_m))
     conic = conics.rim_conics(c_true[keep], 0.5 * diam_true_m[keep], r_mcmf_m, dcm_cam_from_mcmf,
                               cam.k)
     true = conics.ellipse_from_conic(conic)
@@ -275,9 +273,15 @@ def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.W
     inside = (true.valid & (u - half_u >= 0) & (u + half_u <= cam.width_px)
               & (v - half_v >= 0) & (v + half_v <= cam.height_px))
     angles = illumination.crater_illumination_angles(c_true[keep], r_mcmf_m, sun_mcmf_m)
-    p_detect = np.where(inside & ~shadowed, sensor.detection_probability(
+    p_detect = np.where(inside, sensor.detection_probability(
         2.0 * np.nan_to_num(a), angles.incidence_rad, angles.emission_rad,
         min(cam.width_px, cam.height_px), phys.detectability), 0.0)
+    # the terrain's shadow, cast only where it decides something: craters detectable but for it
+    shadowed = np.zeros(keep.size, bool)
+    if shadows is not None:
+        could = np.flatnonzero(p_detect > 0)
+        shadowed[could] = shadows.shadowed(rows[keep[could]], sun_mcmf_m)
+        p_detect[shadowed] = 0.0
     detected = (rngs["detect"].random(keep.size) < p_detect) if keep.size else np.zeros(0, bool)
     sel = keep[detected]
     true_sel = conics.Ellipses(true.centre_px[detected], true.semi_major_px[detected],
