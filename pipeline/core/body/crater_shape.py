@@ -164,6 +164,13 @@ def _diffused_tables(floor_fraction: float, extent: float, dtype: str = "<f8"
     return out[0], out[1]
 
 
+def basis_tables(floor_fraction: float, extent: float) -> np.ndarray:
+    """The diffused rim and bowl bases (2, 2, _N_S, _N_RHO) float64 for a bowl (floor 0) and for
+    `floor_fraction`: the tables `crater_profile` looks up (over sqrt(tau) in
+    [0, sqrt(MAX_DEGRADATION)] and rho in [0, extent])."""
+    return np.stack([np.stack(_diffused_tables(f, float(extent))) for f in (0.0, floor_fraction)])
+
+
 def _lookup(tables: tuple[np.ndarray, np.ndarray], rho: np.ndarray, tau: np.ndarray,
             extent: float) -> tuple[np.ndarray, np.ndarray]:
     """Bilinear interpolation of tables (_N_S, _N_RHO) (of tau's dtype) at (sqrt(tau), rho); 0

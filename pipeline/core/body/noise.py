@@ -30,52 +30,10 @@ from pipeline.core.math.streams import stream
 _GRAD = np.array([[1, 1, 0], [-1, 1, 0], [1, -1, 0], [-1, -1, 0], [1, 0, 1], [-1, 0, 1],
                   [1, 0, -1], [-1, 0, -1], [0, 1, 1], [0, -1, 1], [0, 1, -1], [0, -1, -1],
                   [1, 1, 0], [0, -1, 1], [-1, 1, 0], [0, -1, -1]], dtype=float)
-_PRIMES = (np.uint64(0x9E3779B97F4A7C15), np.uint64(0xC2B2AE3D27D4EB4F),
-           np.uint64(0x165667B19E3779F9))
-_MIX1, _MIX2 = np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
-_CHUNK = 16384
-
-
-_GX, _GY, _GZ = (np.ascontiguousarray(_GRAD[:, k]) for k in range(3))
-
-
-def _mix(h: np.ndarray) -> np.ndarray:
-    """The top 4 bits (intp, 0..15) of a multiply-xorshift mix of a uint64 lattice hash."""
-    h = (h ^ (h >> np.uint64(31))) * _MIX1
-    h = (h ^ (h >> np.uint64(29))) * _MIX2
-    return (h >> np.uint64(60)).astype(np.intp)
-
-
-def _fade(t: np.ndarray) -> np.ndarray:
-    return t * t * t * (t * (t * 6.0 - 15.0) + 10.0)
-
-
-def gradient_noise(q: np.ndarray, key: np.uint64) -> np.ndarray:
-    """Perlin (2002) gradient noise (N,) in about [-1, 1] at lattice coordinates q (N, 3)."""
-    i = np.floor(q)
-    f = q - i
-    iu = i.astype(np.int64).astype(np.uint64)
-    hx = [iu[:, 0] * _PRIMES[0] ^ key, (iu[:, 0] + np.uint64(1)) * _PRIMES[0] ^ key]
-    hy = [iu[:, 1] * _PRIMES[1], (iu[:, 1] + np.uint64(1)) * _PRIMES[1]]
-    hz = [iu[:, 2] * _PRIMES[2], (iu[:, 2] + np.uint64(1)) * _PRIMES[2]]
-    fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
-    wx, wy, wz = _fade(fx), _fade(fy), _fade(fz)
-    corner = {}
-    for dx in (0, 1):
-        for dy in (0, 1):
-            hxy = hx[dx] ^ hy[dy]
-            for dz in (0, 1):
-                g = _mix(hxy ^ hz[dz])
-                corner[dx, dy, dz] = (_GX[g] * (fx - dx) + _GY[g] * (fy - dy)
-                                      + _GZ[g] * (fz - dz))
-    # trilinear blend of the corner values with the fade weights
-    c00 = corner[0, 0, 0] + wx * (corner[1, 0, 0] - corner[0, 0, 0])
-    c10 = corner[0, 1, 0] + wx * (corner[1, 1, 0] - corner[0, 1, 0])
-    c01 = corner[0, 0, 1] + wx * (corner[1, 0, 1] - corner[0, 0, 1])
-    c11 = corner[0, 1, 1] + wx * (corner[1, 1, 1] - corner[0, 1, 1])
-    c0 = c00 + wy * (c10 - c00)
-    c1 = c01 + wy * (c11 - c01)
-    return c0 + wz * (c1 - c0)
+# the lattice hash (`terrain_kernels.fbm`): multipliers per axis, then a multiply-xorshift mix
+_HASH_PRIMES = np.array([0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9],
+                        dtype=np.uint64)
+_HASH_MIX = np.array([0xBF58476D1CE4E5B9, 0x94D049BB133111EB], dtype=np.uint64)
 
 
 @dataclass(frozen=True)
@@ -115,17 +73,15 @@ class FractalNoise:
                  max_wavelength_m: float = np.inf) -> np.ndarray:
         """Height (m) at positions p_m (N, 3) from the octaves with wavelengths in
         [min_wavelength_m, max_wavelength_m) (0, inf: all)."""
-        p = np.asarray(p_m, dtype=float).reshape(-1, 3)
-        out = np.zeros(p.shape[0])
+        from pipeline.core.body import terrain_kernels  # lazy: the compiler where it is used
+
+        p = np.ascontiguousarray(np.asarray(p_m, dtype=float).reshape(-1, 3))
         lam = self.wavelength_m
-        use = [k for k in np.flatnonzero((lam >= min_wavelength_m) & (lam < max_wavelength_m))
-               if self.amplitude_m[k] != 0]
-        for s in range(0, p.shape[0], _CHUNK):  # chunks stay in cache (~20 % faster)
-            ps = p[s:s + _CHUNK]
-            for k in use:
-                q = ps @ (self.rotation[k].T / self.wavelength_m[k]) + self.offset[k]
-                out[s:s + _CHUNK] += self.amplitude_m[k] * gradient_noise(q, self.key[k])
-        return out
+        use = np.flatnonzero((lam >= min_wavelength_m) & (lam < max_wavelength_m)
+                             & (self.amplitude_m != 0))
+        return terrain_kernels.fbm(p, self.rotation[use] / lam[use, None, None],
+                                   self.offset[use], self.key[use], self.amplitude_m[use],
+                                   _HASH_PRIMES, _HASH_MIX, _GRAD)
 
     def residual_bound_m(self, min_wavelength_m: float) -> float:
         """An upper bound (m) of |height| from the octaves shorter than min_wavelength_m (the

@@ -152,24 +152,20 @@ class _Generator:
 
     def heights_at(self, pts: np.ndarray, order: np.ndarray) -> np.ndarray:
         """Heights (N, K) straight from the fields at groups of unit vectors (N, K, 3), each
-        group at its level `order` (N,); craters grouped by the catalogue's order-6 cells."""
-        out = np.zeros(pts.shape[:2])
+        group at its level `order` (N,): the roughness by level, the craters all at once
+        (`CraterField.relief_at`)."""
+        n, k = pts.shape[:2]
+        out = np.zeros((n, k))
         if self.base is not None:
             out += self.base.height_m(pts)
-        cell = tiles.vec2xyf(pts[:, 0])  # group's first point: its HEALPix cell at order 6
-        cell_key = tiles.tile_key(6, cell[2], np.floor(cell[0] * 64), np.floor(cell[1] * 64))
+        delta = self.spacing_m(order)
         for o in np.unique(order):
-            delta = float(self.spacing_m(o))
-            for ck in np.unique(cell_key[order == o]):
-                g = np.flatnonzero((order == o) & (cell_key == ck))
-                k = pts.shape[1]
-                flat = pts[g].reshape(-1, 3)
-                blocks = np.arange(g.size * k).reshape(g.size, k)
-                out[g] += self.noise.height_m(flat * self.opts.radius_m,
-                                              self.opts.roughness_min_cells * delta
-                                              ).reshape(g.size, k)
-                out[g] += self.craters.relief_m(flat, blocks, self.opts.min_crater_cells * delta
-                                                ).reshape(g.size, k)
+            g = np.flatnonzero(order == o)
+            out[g] += self.noise.height_m(pts[g].reshape(-1, 3) * self.opts.radius_m,
+                                          self.opts.roughness_min_cells * float(delta[g[0]])
+                                          ).reshape(g.size, k)
+        out += self.craters.relief_at(pts.reshape(-1, 3), np.repeat(
+            self.opts.min_crater_cells * delta, k)).reshape(n, k)
         return out
 
     def make(self, keys: np.ndarray) -> np.ndarray:
@@ -373,12 +369,15 @@ class Terrain:
         """Rim crest heights (m) of craters (centres (N, 3), their directions; diameters (N,)
         m; normalised ages (N,), None: fresh): the profile's rim over the surroundings, the
         terrain read at `SURROUNDINGS_PER_DIAMETER` diameters (too coarse to hold the crater
-        itself; `pipeline.core.body.relief`). Cheap: tiles at the crater's scale; within the
-        rim's own scatter of `rim_circle_heights_m`."""
+        itself; `pipeline.core.body.relief`), straight from the generators (no tile). Cheap;
+        within the rim's own scatter of `rim_circle_heights_m`."""
         d = np.asarray(diam_m, dtype=float).reshape(-1)
         u = _rows(c_mcmf_m)
-        around = self.height_m(u / np.linalg.norm(u, axis=1, keepdims=True),
-                               SURROUNDINGS_PER_DIAMETER * d)
+        u = u / np.linalg.norm(u, axis=1, keepdims=True)
+        # one point a crater: straight from the generators at that level (a tile each would be
+        # ~1,000 nodes made to read one)
+        order = self._order(SURROUNDINGS_PER_DIAMETER * d, d.size)
+        around = self._gen.heights_at(self._true(u)[:, None, :], order)[:, 0] + self.bias_m
         return around + self.rim_height_m(d, degradation)
 
     def rim_circle_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,

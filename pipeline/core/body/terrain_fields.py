@@ -179,6 +179,7 @@ class CraterField:
         self.floor_fraction, self.extent, self.radius_m = floor_fraction, ejecta_extent, radius_m
         self.classes: list[_SizeClass] = []
         self._shape = (np.empty(0), np.empty(0), np.empty(0))
+        self._basis: np.ndarray | None = None
         if not self.diam_m.size:
             self.rim_max_m = self.depth_max_m = 0.0
             return
@@ -219,6 +220,45 @@ class CraterField:
                             & (self.diam_m[rows] >= min_diam_m[i])])
         return out
 
+    def _tables(self) -> np.ndarray:
+        """The profile tables of the compiled stamp (`crater_shape.basis_tables`), kept."""
+        if self._basis is None:
+            self._basis = crater_shape.basis_tables(self.floor_fraction, self.extent)
+        return self._basis
+
+    def relief_at(self, u: np.ndarray, min_diam_m: np.ndarray) -> np.ndarray:
+        """Summed crater heights (m) at scattered unit vectors u (N, 3), each point from the
+        craters at least min_diam_m (N,) across: one k-d tree query per size class for all
+        points, then the (point, crater) pairs whose footprint holds the point."""
+        out = np.zeros(u.shape[0])
+        pt_parts, row_parts = [], []
+        for c in self.classes:
+            ask = np.flatnonzero(min_diam_m <= c.diam_max_m)
+            if not ask.size:
+                continue
+            ang = min(self.extent * c.diam_max_m / 2 / self.radius_m, np.pi)
+            hits = c.tree.query_ball_point(u[ask], 2.0 * np.sin(ang / 2.0))
+            counts = np.fromiter((len(h) for h in hits), np.int64, len(hits))
+            if counts.sum():
+                pt_parts.append(np.repeat(ask, counts))
+                row_parts.append(c.rows[np.concatenate([h for h in hits if h]).astype(np.int64)])
+        if not pt_parts:
+            return out
+        pt, rows = np.concatenate(pt_parts), np.concatenate(row_parts)
+        keep = self.diam_m[rows] >= min_diam_m[pt]
+        pt, rows = pt[keep], rows[keep]
+        gap = u[pt] - self.u[rows]
+        chord = np.sqrt(np.einsum("pi,pi->p", gap, gap))
+        rho = 2.0 * np.arcsin(np.minimum(chord / 2.0, 1.0)) * self.radius_m / (
+            self.diam_m[rows] / 2.0)
+        inside = rho < self.extent
+        pt, rows, rho = pt[inside], rows[inside], rho[inside]
+        depth, rim, floor = (a[rows] for a in self._shape)
+        h = crater_shape.crater_profile(rho, depth, rim, floor, self.extent,
+                                        None if self.degradation is None
+                                        else self.degradation[rows])
+        return out + np.bincount(pt, h, minlength=out.size)
+
     def relief_many_m(self, nodes: np.ndarray, blocks: np.ndarray, min_diam_m: np.ndarray
                       ) -> np.ndarray:
         """`relief_m` of several node sets (T, M, 3) at once (one crater query for all)."""
@@ -245,36 +285,20 @@ class CraterField:
             rows = self.near(centre, np.array([rad]), np.array([min_diam_m]))[0]
         if not rows.size:
             return out[:-1]
-        padded = np.concatenate([nodes, nodes[:1]])
-        bc, br = _caps(padded[blocks])
-        reach = self.extent * self.diam_m[rows] / 2.0 / self.radius_m
-        ang = np.arccos(np.clip(self.u[rows] @ bc.T, -1, 1))  # (K, B)
-        ci, bi = np.nonzero(ang <= br[None, :] + reach[:, None])
-        if not ci.size:
-            return out[:-1]
         # each block's quarters (`node_blocks` orders them so): a small crater's footprint
-        # meets one or two of them, and only their nodes are evaluated
+        # meets one or two of them, and only their nodes are evaluated (compiled:
+        # `terrain_kernels`)
+        from pipeline.core.body import terrain_kernels  # lazy: the compiler where tiles are made
+
         q = 4 if blocks.shape[1] % 4 == 0 and blocks.shape[1] >= 16 else 1
         quarters = blocks.reshape(blocks.shape[0] * q, -1)
-        qc, qr = _caps(padded[quarters])
-        qi = bi[:, None] * q + np.arange(q)[None, :]  # (P, q)
-        ang_q = np.arccos(np.clip(np.einsum("pj,pqj->pq", self.u[rows[ci]], qc[qi]), -1, 1))
-        meets = ang_q <= qr[qi] + reach[ci][:, None]
-        pi, si = np.nonzero(meets)
-        ci, idx = ci[pi], quarters[qi[pi, si]]  # (P', k / q)
-        cu = self.u[rows[ci]]
-        gap = padded[idx] - cu[:, None, :]
-        chord = np.sqrt(np.einsum("pki,pki->pk", gap, gap))
-        r = rows[ci][:, None]
-        rho = 2.0 * np.arcsin(np.minimum(chord / 2.0, 1.0)) * self.radius_m / (
-            self.diam_m[r] / 2.0)
-        pv, kv = np.nonzero((rho < self.extent) & (idx < nodes.shape[0]))  # the footprints
-        rv = rows[ci[pv]]
-        depth, rim, floor = (a[rv] for a in self._shape)
-        h = crater_shape.crater_profile(rho[pv, kv], depth, rim, floor, self.extent,
-                                        None if self.degradation is None
-                                        else self.degradation[rv])
-        out += np.bincount(idx[pv, kv], h, minlength=out.size)
+        qc, qr = _caps(np.concatenate([nodes, nodes[:1]])[quarters])
+        depth, rim, floor = (a[rows] for a in self._shape)
+        tau = (np.full(rows.size, -1.0) if self.degradation is None
+               else self.degradation[rows])
+        out[:-1] = terrain_kernels.stamp(
+            nodes, quarters, qc, qr, self.u[rows], self.diam_m[rows] / 2.0 / self.radius_m,
+            depth, rim, floor, tau, self.extent, self._tables(), crater_shape.MAX_DEGRADATION)
         return out[:-1]
 
 
