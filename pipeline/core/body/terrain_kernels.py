@@ -4,6 +4,7 @@
 - `stamp`: the profile arithmetic of `crater_shape.crater_profile` (the fresh Pike 1977 shape
   with the McGetchin et al. 1973 ejecta taper, or the diffused basis tables looked up
   bilinearly), one crater at a time over the quarter blocks of nodes its footprint meets;
+- `xyf2vec`: `tiles.xyf2vec`, the HEALPix face coordinates' unit vectors (every tile node);
 - `fbm`: the octaves of gradient noise (Perlin 2002, the lattice hashed by position;
   `noise`) summed per point.
 Compiled by Numba (Lam, Pitrou & Seibert 2015, "Numba: a LLVM-based Python JIT compiler",
@@ -129,4 +130,35 @@ def fbm(p: np.ndarray, scaled_rotation: np.ndarray, offset: np.ndarray, key: np.
             c1 = c01 + wy * (c11 - c01)
             total += amplitude[k] * (c0 + wz * (c1 - c0))
         out[n] = total
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def xyf2vec(x: np.ndarray, y: np.ndarray, face: np.ndarray, jrll: np.ndarray,
+            jpll: np.ndarray) -> np.ndarray:
+    """Unit vectors (N, 3) at continuous face coordinates x, y (N,) of base faces (N,)
+    (`tiles.xyf2vec`'s formulas; `jrll`, `jpll` the faces' ring and phase offsets)."""
+    out = np.empty((x.shape[0], 3))
+    for n in range(x.shape[0]):
+        f = face[n]
+        jr = jrll[f] - x[n] - y[n]
+        if jr < 1.0:
+            nr = jr
+            t = nr * nr / 3.0
+            z = 1.0 - t
+            sth = np.sqrt(max(t * (2.0 - t), 0.0))
+        elif jr > 3.0:
+            nr = 4.0 - jr
+            t = nr * nr / 3.0
+            z = t - 1.0
+            sth = np.sqrt(max(t * (2.0 - t), 0.0))
+        else:
+            nr = 1.0
+            z = (2.0 - jr) * 2.0 / 3.0
+            sth = np.sqrt(max((1.0 - z) * (1.0 + z), 0.0))
+        phi_t = (jpll[f] * nr + x[n] - y[n]) % 8.0
+        phi = 0.25 * np.pi * phi_t / nr if abs(nr) > 1e-15 else 0.0
+        out[n, 0] = sth * np.cos(phi)
+        out[n, 1] = sth * np.sin(phi)
+        out[n, 2] = z
     return out

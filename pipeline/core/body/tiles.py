@@ -77,18 +77,14 @@ def vec2xyf(u: np.ndarray, grad: bool = False) -> tuple[np.ndarray, ...]:
 def xyf2vec(x: np.ndarray, y: np.ndarray, face: np.ndarray) -> np.ndarray:
     """Unit vectors (..., 3) at continuous face coordinates (x, y) of base faces `face`; the
     formulas extend continuously a little outside [0, 1] (the tiles' stencil ring)."""
-    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
-    f = np.asarray(face, dtype=np.int64)
-    jr = _JRLL[f] - x - y
-    north, south = jr < 1.0, jr > 3.0
-    nr = np.where(north, jr, np.where(south, 4.0 - jr, 1.0))
-    t = nr * nr / 3.0
-    z = np.where(north, 1.0 - t, np.where(south, t - 1.0, (2.0 - jr) * 2.0 / 3.0))
-    sth = np.where(north | south, np.sqrt(np.maximum(t * (2.0 - t), 0.0)),
-                   np.sqrt(np.maximum((1.0 - z) * (1.0 + z), 0.0)))
-    phi_t = np.mod(_JPLL[f] * nr + x - y, 8.0)
-    phi = np.where(np.abs(nr) > 1e-15, 0.25 * np.pi * phi_t / np.where(nr == 0, 1.0, nr), 0.0)
-    return np.stack([sth * np.cos(phi), sth * np.sin(phi), z], axis=-1)
+    from pipeline.core.body import terrain_kernels  # lazy: the compiler where tiles are made
+
+    x, y, f = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float),
+                                  np.asarray(face, dtype=np.int64))
+    out = terrain_kernels.xyf2vec(np.ascontiguousarray(x).reshape(-1),
+                                  np.ascontiguousarray(y).reshape(-1),
+                                  np.ascontiguousarray(f).reshape(-1), _JRLL, _JPLL)
+    return out.reshape(*x.shape, 3)
 
 
 def spacing_m(order: np.ndarray | int, cells: int, radius_m: float) -> np.ndarray:

@@ -206,7 +206,7 @@ class SensedFrame:
     columns: dict[str, np.ndarray]  # PHYSICAL_COLUMNS but rho_size_m, (n,) each
     n_candidates: int  # in the field of view and on the visible side, any size
     corners_mcmf_m: np.ndarray  # (4, 3)
-    n_shadowed: int = 0  # candidates detectable but for the terrain's shadow, which hid them
+    n_shadowed: int = 0  # candidates detected but for the terrain's shadow, which hid them
 
 
 def world_in_view(model: DetectionModel, craters: CraterArrays, world: sensor.World,
@@ -276,13 +276,13 @@ def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.W
     p_detect = np.where(inside, sensor.detection_probability(
         2.0 * np.nan_to_num(a), angles.incidence_rad, angles.emission_rad,
         min(cam.width_px, cam.height_px), phys.detectability), 0.0)
-    # the terrain's shadow, cast only where it decides something: craters detectable but for it
-    shadowed = np.zeros(keep.size, bool)
-    if shadows is not None:
-        could = np.flatnonzero(p_detect > 0)
-        shadowed[could] = shadows.shadowed(rows[keep[could]], sun_mcmf_m)
-        p_detect[shadowed] = 0.0
     detected = (rngs["detect"].random(keep.size) < p_detect) if keep.size else np.zeros(0, bool)
+    # the terrain's shadow, cast only where it decides something: craters detected but for it
+    shadowed = np.zeros(keep.size, bool)
+    if shadows is not None and detected.any():
+        could = np.flatnonzero(detected)
+        shadowed[could] = shadows.shadowed(rows[keep[could]], sun_mcmf_m)
+        detected &= ~shadowed
     sel = keep[detected]
     true_sel = conics.Ellipses(true.centre_px[detected], true.semi_major_px[detected],
                                true.semi_minor_px[detected], true.angle_rad[detected],

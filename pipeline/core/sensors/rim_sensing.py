@@ -38,7 +38,7 @@ class Sensed:
     columns: dict[str, np.ndarray]
     n_candidates: int
     corners_mcmf_m: np.ndarray  # (4, 3)
-    n_shadowed: int = 0  # candidates detectable but for the terrain's shadow
+    n_shadowed: int = 0  # candidates detected but for the terrain's shadow
 
 
 Sensing = Callable[[int, dict[str, np.random.Generator]], Sensed]  # frame index, its streams
