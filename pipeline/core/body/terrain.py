@@ -231,8 +231,6 @@ class Terrain:
         self.min_resolution_m = float(min_resolution_m)
         self.cache = cache if cache is not None else tiles.TileCache(
             gen.opts.tile_cells, int(gen.opts.cache_mib * 2**20), gen.make)
-        side = gen.opts.tile_cells + 3
-        self._offsets = (np.arange(4)[:, None] * side + np.arange(4)[None, :]).ravel()
 
     @classmethod
     def build(cls, opts: TerrainOptions, c_mcmf_m: np.ndarray | None = None,
@@ -308,20 +306,17 @@ class Terrain:
         cx, cy = gx - tx * n, gy - ty * n
         ix = np.clip(np.floor(cx), 0, n - 1).astype(np.int64)
         iy = np.clip(np.floor(cy), 0, n - 1).astype(np.int64)
+        from pipeline.core.body import terrain_kernels  # lazy: the compiler where tiles are read
+
         slots = self.cache.slots(tiles.tile_key(order, face, tx, ty))
         side = n + 3
         first = (slots * side + iy) * side + ix
-        v = self.cache.flat[first[:, None] + self._offsets].reshape(-1, 4, 4).astype(float)
-        wx, dwx = tiles.catmull_rom(cx - ix, deriv)
-        wy, dwy = tiles.catmull_rom(cy - iy, deriv)
-        vx = np.einsum("nab,nb->na", v, wx)
-        h = np.einsum("na,na->n", wy, vx)
+        h, hx, hy = terrain_kernels.bicubic(self.cache.flat, side, first, cx - ix, cy - iy,
+                                            deriv)
         if not deriv:
             return h, None
-        assert dwx is not None and dwy is not None
         # dh / dx, dh / dy per face unit, times the face coordinates' gradients per metre
-        hx = np.einsum("na,nab,nb->n", wy, v, dwx) * scale / self.reference_radius_m
-        hy = np.einsum("na,na->n", dwy, vx) * scale / self.reference_radius_m
+        hx, hy = hx * scale / self.reference_radius_m, hy * scale / self.reference_radius_m
         return h, hx[:, None] * dx + hy[:, None] * dy
 
     def _eval(self, u: np.ndarray, resolution_m: Resolution, deriv: bool

@@ -4,7 +4,9 @@
 - `stamp`: the profile arithmetic of `crater_shape.crater_profile` (the fresh Pike 1977 shape
   with the McGetchin et al. 1973 ejecta taper, or the diffused basis tables looked up
   bilinearly), one crater at a time over the quarter blocks of nodes its footprint meets;
-- `xyf2vec`: `tiles.xyf2vec`, the HEALPix face coordinates' unit vectors (every tile node);
+- `xyf2vec`, `vec2xyf`: `tiles.xyf2vec` and `tiles.vec2xyf`, the HEALPix face coordinates
+  and their unit vectors (every tile node, every terrain query);
+- `bicubic`: `Terrain._sample`'s Catmull-Rom read of the tiles' nodes;
 - `fbm`: the octaves of gradient noise (Perlin 2002, the lattice hashed by position;
   `noise`) summed per point.
 Compiled by Numba (Lam, Pitrou & Seibert 2015, "Numba: a LLVM-based Python JIT compiler",
@@ -162,3 +164,98 @@ def xyf2vec(x: np.ndarray, y: np.ndarray, face: np.ndarray, jrll: np.ndarray,
         out[n, 1] = sth * np.sin(phi)
         out[n, 2] = z
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def vec2xyf(u: np.ndarray, grad: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                   np.ndarray, np.ndarray]:
+    """Face coordinates x, y (N,), base faces (N,) of unit vectors u (N, 3) and, with `grad`,
+    their gradients (N, 3) along the sphere (`tiles.vec2xyf`'s formulas; else zeros)."""
+    n = u.shape[0]
+    xs, ys = np.empty(n), np.empty(n)
+    faces = np.empty(n, np.int64)
+    gxs, gys = np.zeros((n, 3)), np.zeros((n, 3))
+    for k in range(n):
+        ux, uy, z = u[k, 0], u[k, 1], u[k, 2]
+        sth = np.hypot(ux, uy)
+        tt = (np.arctan2(uy, ux) % (2 * np.pi)) / (0.5 * np.pi)
+        if tt >= 4.0:
+            tt = 0.0
+        za = abs(z)
+        north = z > 0
+        if za > 2.0 / 3.0:
+            ntt = min(np.floor(tt), 3.0)
+            tp = tt - ntt
+            tmp = np.sqrt(3.0) * sth / np.sqrt(1.0 + za)
+            face = int(ntt) if north else int(ntt) + 8
+            if north:
+                x, y = 1.0 - (1.0 - tp) * tmp, 1.0 - tp * tmp
+            else:
+                x, y = tp * tmp, (1.0 - tp) * tmp
+        else:
+            jp = 0.5 + tt - 0.75 * z
+            jm = 0.5 + tt + 0.75 * z
+            ifp, ifm = np.floor(jp), np.floor(jm)
+            if ifp == ifm:
+                face = int(ifp % 4) + 4
+            elif ifp < ifm:
+                face = int(ifp)
+            else:
+                face = int(ifm) + 8
+            x, y = jm - ifm, 1.0 - (jp - ifp)
+            tmp, tp = 0.0, 0.0
+        xs[k], ys[k], faces[k] = min(max(x, 0.0), 1.0), min(max(y, 0.0), 1.0), face
+        if not grad:
+            continue
+        s2 = max(sth * sth, 1e-300)
+        d_tt = (2.0 / np.pi) * np.array([-uy, ux, 0.0]) / s2
+        d_z = np.array([0.0, 0.0, 1.0]) - z * u[k]
+        if za > 2.0 / 3.0:
+            d_tmp = (-1.5 * (1.0 if north else -1.0) / max(tmp, 1e-300)) * d_z
+            if north:
+                gxs[k] = d_tt * tmp - (1.0 - tp) * d_tmp
+                gys[k] = -(d_tt * tmp + tp * d_tmp)
+            else:
+                gxs[k] = d_tt * tmp + tp * d_tmp
+                gys[k] = -d_tt * tmp + (1.0 - tp) * d_tmp
+        else:
+            gxs[k] = d_tt + 0.75 * d_z
+            gys[k] = -d_tt + 0.75 * d_z
+    return xs, ys, faces, gxs, gys
+
+
+@numba.njit(cache=True, nogil=True)
+def bicubic(flat: np.ndarray, side: int, first: np.ndarray, tx: np.ndarray, ty: np.ndarray,
+            deriv: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Catmull-Rom interpolation (Keys 1981) of float32 tile nodes: for each point, the 4 x 4
+    nodes from flat index `first` (row stride `side`) at fractions tx, ty in [0, 1); the value
+    and (deriv) its derivatives along x and y per cell (else zeros)."""
+    n = first.shape[0]
+    h, hx, hy = np.empty(n), np.zeros(n), np.zeros(n)
+    wx, wy, dwx, dwy = np.empty(4), np.empty(4), np.empty(4), np.empty(4)
+    for k in range(n):
+        for t, w, dw in ((tx[k], wx, dwx), (ty[k], wy, dwy)):
+            t2 = t * t
+            t3 = t2 * t
+            w[0] = 0.5 * (-t3 + 2 * t2 - t)
+            w[1] = 0.5 * (3 * t3 - 5 * t2 + 2)
+            w[2] = 0.5 * (-3 * t3 + 4 * t2 + t)
+            w[3] = 0.5 * (t3 - t2)
+            dw[0] = 0.5 * (-3 * t2 + 4 * t - 1)
+            dw[1] = 0.5 * (9 * t2 - 10 * t)
+            dw[2] = 0.5 * (-9 * t2 + 8 * t + 1)
+            dw[3] = 0.5 * (3 * t2 - 2 * t)
+        val, vx, vy = 0.0, 0.0, 0.0
+        for a in range(4):
+            row = 0.0
+            row_dx = 0.0
+            for b in range(4):
+                v = np.float64(flat[first[k] + a * side + b])
+                row += v * wx[b]
+                row_dx += v * dwx[b]
+            val += wy[a] * row
+            if deriv:
+                vx += wy[a] * row_dx
+                vy += dwy[a] * row
+        h[k], hx[k], hy[k] = val, vx, vy
+    return h, hx, hy

@@ -37,41 +37,15 @@ def vec2xyf(u: np.ndarray, grad: bool = False) -> tuple[np.ndarray, ...]:
     """Continuous HEALPix face coordinates of unit vectors (..., 3): x, y in [0, 1] and the base
     face (int64), so that floor(x 2^o), floor(y 2^o) are the nested cell's (ix, iy) at order o;
     with `grad`, also the gradients (..., 3) of x and y along the unit sphere (per radian)."""
+    from pipeline.core.body import terrain_kernels  # lazy: the compiler where tiles are read
+
     u = np.asarray(u, dtype=float)
-    z = u[..., 2]
-    sth = np.hypot(u[..., 0], u[..., 1])
-    tt = np.mod(np.arctan2(u[..., 1], u[..., 0]), 2 * np.pi) / (0.5 * np.pi)
-    tt = np.where(tt >= 4.0, 0.0, tt)
-    za = np.abs(z)
-    # equatorial zone (|z| <= 2/3)
-    jp = 0.5 + tt - 0.75 * z
-    jm = 0.5 + tt + 0.75 * z
-    ifp, ifm = np.floor(jp), np.floor(jm)
-    face_eq = np.where(ifp == ifm, np.mod(ifp, 4) + 4, np.where(ifp < ifm, ifp, ifm + 8))
-    # polar caps (|z| > 2/3)
-    ntt = np.minimum(np.floor(tt), 3.0)
-    tp = tt - ntt
-    tmp = np.sqrt(3.0) * sth / np.sqrt(1.0 + za)  # sqrt(3 (1 - |z|)), precise near the poles
-    north = z > 0
-    polar = za > 2.0 / 3.0
-    face = np.where(polar, np.where(north, ntt, ntt + 8), face_eq).astype(np.int64)
-    x = np.where(polar, np.where(north, 1.0 - (1.0 - tp) * tmp, tp * tmp), jm - ifm)
-    y = np.where(polar, np.where(north, 1.0 - tp * tmp, (1.0 - tp) * tmp), 1.0 - (jp - ifp))
-    x, y = np.clip(x, 0.0, 1.0), np.clip(y, 0.0, 1.0)
+    shape = u.shape[:-1]
+    x, y, face, gx, gy = terrain_kernels.vec2xyf(np.ascontiguousarray(u.reshape(-1, 3)), grad)
+    x, y, face = x.reshape(shape), y.reshape(shape), face.reshape(shape)
     if not grad:
         return x, y, face
-    # chain rule: d tt = (2 / pi) d phi, grad phi = (-u_y, u_x, 0) / sth^2, grad z = e_z - z u
-    s2 = np.maximum(sth * sth, 1e-300)[..., None]
-    d_tt = (2.0 / np.pi) * np.stack([-u[..., 1], u[..., 0], 0.0 * z], -1) / s2
-    d_z = np.stack([0.0 * z, 0.0 * z, 1.0 + 0.0 * z], -1) - z[..., None] * u
-    # polar: tmp = sqrt(3 (1 - |z|)), d tmp = -3 sign(z) d z / (2 tmp)
-    d_tmp = (-1.5 * np.where(north, 1.0, -1.0) / np.maximum(tmp, 1e-300))[..., None] * d_z
-    t_, p_ = tmp[..., None], tp[..., None]
-    gx_p = np.where(north[..., None], d_tt * t_ - (1.0 - p_) * d_tmp, d_tt * t_ + p_ * d_tmp)
-    gy_p = np.where(north[..., None], -(d_tt * t_ + p_ * d_tmp), -d_tt * t_ + (1.0 - p_) * d_tmp)
-    gx = np.where(polar[..., None], gx_p, d_tt + 0.75 * d_z)
-    gy = np.where(polar[..., None], gy_p, -d_tt + 0.75 * d_z)
-    return x, y, face, gx, gy
+    return x, y, face, gx.reshape(*shape, 3), gy.reshape(*shape, 3)
 
 
 def xyf2vec(x: np.ndarray, y: np.ndarray, face: np.ndarray) -> np.ndarray:
