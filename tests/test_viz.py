@@ -20,7 +20,7 @@ from pipeline.ops.score import by_craters_used
 from pipeline.studies import suslu2025
 from pipeline.viz import viewer
 from pipeline.viz.report import figures, md_tables, run_report
-from pipeline.viz.rerun import base, estimation, layout, trajectory, world
+from pipeline.viz.rerun import base, estimation, layout, rendered, trajectory, world
 from pipeline.vocab import METHODS, QUANTITIES, STATE_DIM, STATUS_CODES
 
 R_MOON = 1_737_400.0
@@ -198,13 +198,35 @@ def test_scoring_has_errors_and_nees_with_its_reference_lines(tmp_path, tables):
                                   3 * paper["crlb_x_m"].to_numpy())
 
 
+def _p99_best(scores: pl.DataFrame, column: str) -> float:
+    """The smallest per-method 99th percentile of |error| over the `ok` estimates."""
+    ok = scores.filter(pl.col("status") == "ok")
+    return min(float(np.nanpercentile(np.abs(g[column].to_numpy()), 99))
+               for _, g in ok.group_by("method"))
+
+
 def test_error_ranges_follow_the_data_not_a_fixed_zoom(tables):
     scores = tables[2]
     big = scores.with_columns(pl.col("err_y_m") * 150.0)  # a real catalogue's 30-400 m errors
     r = estimation.error_ranges(big)
-    p99 = np.nanpercentile(np.abs(big["err_y_m"].to_numpy()), 99)
+    p99 = _p99_best(big, "err_y_m")
     assert r["y_m"] == pytest.approx((-1.5 * p99, 1.5 * p99))
     assert r["y_m"][1] > 100.0 > r["x_m"][1]
+
+
+def test_error_ranges_follow_the_best_method_not_the_worst(tables):
+    # from pixels: the paper method kilometres off, the joint metres; the plot keeps the joint
+    scores = tables[2]
+    assert set(scores["method"].unique()) >= {"paper", "joint"}
+    worse = scores.with_columns(pl.when(pl.col("method") == "paper").then(pl.col("err_x_m") * 1e3)
+                                .otherwise(pl.col("err_x_m")).alias("err_x_m"))
+    r = estimation.error_ranges(worse)
+    joint = worse.filter((pl.col("method") == "joint") & (pl.col("status") == "ok"))
+    p99_joint = float(np.nanpercentile(np.abs(joint["err_x_m"].to_numpy()), 99))
+    crlb = 3.0 * float(np.nanmedian(worse["crlb_x_m"].to_numpy()))
+    assert r["x_m"][1] == pytest.approx(1.5 * max(p99_joint, crlb))
+    paper = worse.filter(pl.col("method") == "paper")
+    assert np.nanpercentile(np.abs(paper["err_x_m"].to_numpy()), 50) > 10 * r["x_m"][1]
 
 
 def test_catalogue_recording_is_static_with_its_own_recording_id(tmp_path):
@@ -265,6 +287,8 @@ def test_layout_has_one_unit_per_plot_and_the_eye_on_the_spacecraft(tmp_path):
                            ("candidates (tile query)", ["/counts/candidates"])):
         assert by_name[name]["contents"] == contents, name
     assert "/counts/candidates" not in by_name["craters per frame"]["contents"]
+    # the rendered images and their rims have a view of their own (`just view images`)
+    assert by_name["rendered image (px)"]["origin"] == [rendered.IMAGE_ENTITY]
     three_d = by_name["3D: spacecraft and footprint (body frame)"]
     assert three_d["origin"] == [world.CHASE_ENTITY]
     assert three_d["contents"] == ["/world/**", "- /world/spacecraft/camera/**"]

@@ -200,17 +200,27 @@ def log_scoring(rec: rr.RecordingStream, scores) -> None:
 
 def error_ranges(scores, spread: float = 1.5) -> dict[str, tuple[float, float]]:
     """Symmetric y ranges of the error plots from the data's robust spread: per quantity,
-    `spread` times the larger of the 99th percentile of |error| (all methods) and the median
-    3 sqrt(CRLB). Empty (auto-fit) where no error is finite."""
+    `spread` times the larger of the most accurate method's 99th percentile of |error| (over
+    its `ok` estimates; all of them where none is ok) and the median 3 sqrt(CRLB). A method
+    far worse than the best (the paper's kilometres beside the joint's metres from pixels) runs
+    off the plot instead of flattening the others. Empty (auto-fit) where no error is finite."""
+    methods = scores["method"].to_numpy()
+    ok = scores["status"].to_numpy() == "ok"
     out = {}
     for q in QUANTITIES:
-        err = np.abs(scores[f"err_{q.name}"].to_numpy().astype(float))
-        err = err[np.isfinite(err)]
+        err_all = np.abs(scores[f"err_{q.name}"].to_numpy().astype(float))
         crlb = 3.0 * scores[f"crlb_{q.name}"].to_numpy().astype(float)
         crlb = crlb[np.isfinite(crlb)]
-        if not err.size:
+        best = []
+        for m in np.unique(methods):
+            mine = methods == m
+            err = err_all[mine & ok] if (mine & ok).any() else err_all[mine]
+            err = err[np.isfinite(err)]
+            if err.size:
+                best.append(float(np.percentile(err, 99)))
+        if not best:
             continue
-        r = max(float(np.percentile(err, 99)), float(np.median(crlb)) if crlb.size else 0.0)
+        r = max(min(best), float(np.median(crlb)) if crlb.size else 0.0)
         if r > 0:
             out[q.name] = (-spread * r, spread * r)
     return out

@@ -18,7 +18,7 @@ from pipeline.viz.rerun.base import APP_ID, recording_id
 from pipeline.viz.rerun.estimation import error_ranges, nees_band, quantity_entity
 from pipeline.viz.rerun.inertial import ACCEL_BIAS_ENTITY, GYRO_BIAS_ENTITY
 from pipeline.viz.rerun.navigation import NAV_ERRORS, NAV_NEES_DOF, NAV_NEES_TOTAL_DOF
-from pipeline.viz.rerun.rendered import IDENTIFICATION_ENTITY
+from pipeline.viz.rerun.rendered import IDENTIFICATION_ENTITY, IMAGE_ENTITY
 from pipeline.viz.rerun.sun import GSD_ENTITY, SUN_ELEVATION_ENTITY
 from pipeline.viz.rerun.world import CHASE_ENTITY
 from pipeline.vocab import (
@@ -80,7 +80,8 @@ def _time_window(window_s: tuple[float, float]) -> list[rrb.VisibleTimeRange]:
 
 def blueprint(ranges: dict[str, tuple[float, float]] | None = None,
               nees_max: float | None = None) -> rrb.Blueprint:
-    """The run's layout: 3D view (eye on the spacecraft), camera view, one plot per unit.
+    """The run's layout: 3D view (eye on the spacecraft), camera view and rendered images, one
+    plot per unit.
 
     Without `ranges` (what every stage file carries) the error plots show ERROR_WINDOW_S around
     the time cursor with an auto-fitted y axis; `ranges` (quantity name -> (lo, hi), e.g. from
@@ -112,7 +113,10 @@ def blueprint(ranges: dict[str, tuple[float, float]] | None = None,
                 plots,
                 row_shares=[3, 2]),
             rrb.Vertical(
-                rrb.Spatial2DView(origin="/world/spacecraft/camera", name="camera view"),
+                # the camera's projected craters; the rendered images with their rims (runs
+                # with a `[render]` section: `just render`)
+                rrb.Tabs(rrb.Spatial2DView(origin="/world/spacecraft/camera", name="camera view"),
+                         rrb.Spatial2DView(origin=IMAGE_ENTITY, name="rendered image (px)")),
                 rrb.Tabs(*[error_view(q) for q in POSITION + ATTITUDE], *nav["errors"]),
                 row_shares=[1, 1]),
             column_shares=[3, 2]),
