@@ -98,13 +98,17 @@ def dead_reckoning(rec: FlightRecord, x0: NavState, dt_s: float, gravity: str) -
     return filter.dead_reckon(x0, 0.0, imu, np.array(rec.record_t_s), gravity)
 
 
-def guidance_table(rec: FlightRecord, vehicle: Vehicle, surface: Surface) -> pl.DataFrame:
-    """One row per guidance call."""
+def guidance_table(rec: FlightRecord, vehicle: Vehicle, belief: Vehicle, surface: Surface
+                   ) -> pl.DataFrame:
+    """One row per guidance call: the command (N, as the flight software believes its engine),
+    the thrust the true engine gave at that throttle setting, its throttle (share of the true
+    maximum), the masses."""
     g = rec.guidance
     _, r, v, _ = _states(g.true)
     cmd = np.array(g.thrust_mci_n).reshape(-1, 3)
     thrust_cmd = np.linalg.norm(cmd, axis=1)
-    flown = np.array([vehicle.clamp_thrust_n(float(x)) for x in thrust_cmd])
+    flown = np.array([vehicle.clamp_thrust_n(float(x) / belief.max_thrust_n
+                                             * vehicle.max_thrust_n) for x in thrust_cmd])
     mass = np.array([s.mass_kg for s in g.true])
     flown = np.where(mass > vehicle.dry_mass_kg, flown, 0.0)
     theta = frames.moon_rotation_angle_rad(np.array(g.t_s), MOON_ROTATION_RATE_RAD_S)

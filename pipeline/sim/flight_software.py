@@ -103,6 +103,12 @@ class FlightSoftware:
         self.thrust_cmd_n = cmd.thrust_n
         return cmd
 
+    def throttle(self) -> float:
+        """The engine's throttle setting for the last command: its thrust (N) over the maximum
+        thrust the flight software believes the engine has (a true engine stronger or weaker
+        than believed gives that much more or less)."""
+        return self.thrust_cmd_n / self.vehicle.max_thrust_n
+
     # --- what the navigation table records ----------------------------------------------------
 
     def record(self, t_s: float) -> Record | None:

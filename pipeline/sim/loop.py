@@ -139,7 +139,7 @@ def fly(world: World, fsw: FlightSoftware, camera: Camera | None, rates: Rates,
             if advance is not None:
                 advance(t)
         assert cmd is not None
-        dtheta, dv = world.step(cmd.thrust_n, cmd.q_mci_from_body_cmd)
+        dtheta, dv = world.step(fsw.throttle(), cmd.q_mci_from_body_cmd)
         fsw.imu_sample(k, dtheta, dv)
         contact = world.contact()
         if contact is not None:

@@ -90,15 +90,17 @@ class World:
 
     # --- dynamics ---------------------------------------------------------------------------
 
-    def step(self, thrust_cmd_n: float, q_mci_from_body_cmd: np.ndarray
+    def step(self, throttle: float, q_mci_from_body_cmd: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray]:
-        """Fly one step; the IMU's measured delta-theta (rad) and delta-v (m/s), body axes:
-        (I + S + M) true + b dt + random walk (`pipeline.core.sensors.imu`)."""
+        """Fly one step with the engine at a throttle setting (share of its maximum thrust:
+        the true engine's, whatever the flight software believes it to be); the IMU's measured
+        delta-theta (rad) and delta-v (m/s), body axes: (I + S + M) true + b dt + random walk
+        (`pipeline.core.sensors.imu`)."""
         k = self.k
         if k >= self.n_steps:
             raise ValueError(f"the world was drawn for {self.n_steps} steps")
-        s = step(self.vehicle, self.state, thrust_cmd_n, q_mci_from_body_cmd, self.dt_s,
-                 gravity=self.gravity)
+        s = step(self.vehicle, self.state, throttle * self.vehicle.max_thrust_n,
+                 q_mci_from_body_cmd, self.dt_s, gravity=self.gravity)
         # the ground moves under the lander at most at the Moon's spin times its radius
         self._clear_m -= (float(np.linalg.norm(s.state.r_mci_m - self.state.r_mci_m))
                           + self._ground_speed_m_s * self.dt_s)

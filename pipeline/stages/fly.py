@@ -182,7 +182,7 @@ def run(ctx: StageContext) -> StageResult:
     tx.table("frames", frames_table)
     tx.table("navigation", navigation)
     tx.output("navigation.json").write_text(json.dumps({"t_start_s": 0.0}, indent=2) + "\n")
-    tx.table("guidance", tables.guidance_table(rec, o.vehicle, world_surface))
+    tx.table("guidance", tables.guidance_table(rec, o.vehicle, o.vehicle_belief, world_surface))
     tx.table("touchdown", touchdown)
     tx.table("site_terrain", tables.site_terrain_table(world_surface, sc.surfaces.map, target))
     row = touchdown.row(0, named=True)

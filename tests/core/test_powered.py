@@ -281,3 +281,34 @@ def test_presets_are_sourced_and_can_hover_empty() -> None:
     for name, v in powered.VEHICLES.items():
         assert v.name == name and len(v.source) > 80
         assert v.max_thrust_n * v.throttle_range[1] > v.dry_mass_kg * 1.62
+
+
+def test_the_roll_held_attitude_turns_the_thrust_axis_and_nothing_else() -> None:
+    roll_held_attitude, thrust_attitude = attitude.roll_held_attitude, attitude.thrust_attitude
+    dcm_from_q = rotations.dcm_from_q
+    # the smallest rotation to the new thrust axis: the angle between the attitudes is the
+    # angle between the axes (no roll asked), and a reversal of the tilt's azimuth, which
+    # turns the ground-facing roll of `thrust_attitude` by half a turn, costs twice the tilt
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        held = roll_held_attitude(u, q)
+        r0, r1 = dcm_from_q(q), dcm_from_q(held)
+        np.testing.assert_allclose(-r1[:, 2], u, atol=1e-12)
+        turn = np.arccos(np.clip((np.trace(r0.T @ r1) - 1.0) / 2.0, -1.0, 1.0))
+        assert turn == pytest.approx(np.arccos(np.clip(-r0[:, 2] @ u, -1.0, 1.0)), abs=1e-7)
+    up = np.array([0.0, 0.0, 1.0])
+    tilt = np.radians(12.0)  # above the 10 deg blend: the ground fixes the roll
+    east, west = (np.array([s * np.sin(tilt), 0.0, np.cos(tilt)]) for s in (1.0, -1.0))
+    q_east = thrust_attitude(east, up, np.array([1.0, 0.0, 0.0]))
+    ground_facing = thrust_attitude(west, up, dcm_from_q(q_east)[:, 0])
+    held = roll_held_attitude(west, q_east)
+
+    def angle(a: np.ndarray, b: np.ndarray) -> float:
+        return float(np.arccos(np.clip((np.trace(dcm_from_q(a).T @ dcm_from_q(b)) - 1) / 2,
+                                       -1.0, 1.0)))
+    assert angle(q_east, held) == pytest.approx(2 * tilt, rel=1e-6)
+    assert angle(q_east, ground_facing) > np.radians(170.0)

@@ -132,6 +132,27 @@ def test_the_guidance_table_follows_the_phases_and_the_rocket_equation(flown):
 
 
 @pytest.mark.slow  # a whole flight: `just test-slow` (and CI)
+def test_an_engine_stronger_than_believed_gives_more_thrust_and_guidance_absorbs_it(
+        tmp_path, catalogue_db):
+    # the flight software commands a throttle from the engine it believes (4 kN); the true one
+    # gives 6 % more at every setting, and the feedback still lands the lander
+    cfg = fast_landing("strong", catalogue_db, flight={"thrust_scale": 1.06,
+                                                       "assumed_thrust_scale": 1.0})
+    run_stages(cfg, tmp_path)
+    store = RunStore("strong", tmp_path)
+    g = read(store, "guidance").filter(pl.col("phase") != "coast")
+    believed_max_n, true_max_n = 4_000.0, 4_000.0 * 1.06
+    inside = ((g["thrust_cmd_n"] > 0.25 * believed_max_n)
+              & (g["thrust_cmd_n"] * 1.06 < true_max_n))
+    assert inside.sum() > 100
+    np.testing.assert_allclose(g.filter(inside)["thrust_n"].to_numpy(),
+                               1.06 * g.filter(inside)["thrust_cmd_n"].to_numpy(), rtol=1e-12)
+    t = read(store, "touchdown").row(0, named=True)
+    assert t["status"] == "landed", t["reason"]
+    assert t["fte_m"] < 5.0
+
+
+@pytest.mark.slow  # a whole flight: `just test-slow` (and CI)
 def test_out_of_fuel_is_never_a_landing(tmp_path, catalogue_db):
     # the engine burns 2.5 times the propellant its software books: the tanks run dry
     cfg = fast_landing("dry", catalogue_db, flight={"isp_scale": 0.4, "assumed_isp_scale": 1.0,

@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from pipeline.core.math.frames import dcm_mci_from_orbit
-from pipeline.core.math.rotations import q_multiply
+from pipeline.core.math.rotations import dcm_from_q, q_multiply
 
 DEFAULT_BLEND_RAD = math.radians(10.0)  # tilt below which the reference roll takes part
 
@@ -79,6 +79,18 @@ def thrust_attitude(u_thrust_mci: np.ndarray, u_up_mci: np.ndarray, x_ref_mci: n
         x = _cross(z, np.array([1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0]))
     x = _unit(x)
     return q_from_axes(x, _cross(z, x), z)
+
+
+def roll_held_attitude(u_thrust_mci: np.ndarray, q_mci_from_body: np.ndarray) -> np.ndarray:
+    """q_mci_from_body (4,) with body -z along the thrust direction u_thrust_mci (3,), reached
+    from the present attitude q_mci_from_body by the smallest rotation: no roll about the thrust
+    axis is asked, so a slew-limited vehicle spends its rate on the thrust direction alone (near
+    the vertical `thrust_attitude`'s ground-facing roll turns with the tilt's azimuth, half a
+    turn when the tilt reverses)."""
+    q = np.asarray(q_mci_from_body, dtype=float)
+    d_body = dcm_from_q(q).T @ _unit(np.asarray(u_thrust_mci, dtype=float))
+    out = q_multiply(q, _q_from_minus_z_to(d_body))
+    return out / np.linalg.norm(out)
 
 
 def _q_from_minus_z_to(d: np.ndarray) -> np.ndarray:

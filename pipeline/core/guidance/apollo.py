@@ -18,7 +18,7 @@ which turns with the Moon, so the site is fixed and the Moon's rotation is exact
   continuous at the high gate;
 - terminal (P66): a vertical descent at the constant rate: the vertical rate held by a
   proportional loop, the horizontal position over the site by a critically damped loop, its
-  tilt limited.
+  tilt limited, the roll held (`roll_held_attitude`: the slew rate goes to the thrust axis).
 Each phase ends `switch_t_go_s` before its end time (the polynomial's gains grow as 1 / t_go^2).
 The commanded thrust is the vehicle's mass times the thrust acceleration (the polynomial's total
 acceleration minus the apparent gravity at the present state), clamped to the throttle range with
@@ -36,7 +36,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from pipeline.core.dynamics.attitude import thrust_attitude
+from pipeline.core.dynamics.attitude import roll_held_attitude, thrust_attitude
 from pipeline.core.dynamics.gravity import GRAVITY_MODELS
 from pipeline.core.dynamics.powered import Vehicle
 from pipeline.core.guidance.base import NavigatedState, Target, ThrustCommand
@@ -250,5 +250,8 @@ class ApolloGuidance:
         norm = math.sqrt(float(a_thrust @ a_thrust))
         u = a_thrust / norm if norm > 0.0 else up
         thrust_n = self.vehicle.clamp_thrust_n(max(state.mass_kg * norm, 1e-9))
-        q_cmd = thrust_attitude(u, up, x_ref)
+        # the vertical descent holds its roll: its small tilts turn in azimuth as the position
+        # loop works, and a ground-facing roll would turn with them
+        q_cmd = (roll_held_attitude(u, state.q_mci_from_body) if self.phase == "terminal"
+                 else thrust_attitude(u, up, x_ref))
         return ThrustCommand(thrust_n * u, q_cmd, self.phase)
