@@ -80,7 +80,7 @@ def test_the_compiled_stamp_sums_every_profile_over_every_node(aged: bool) -> No
     diam = np.exp(rng.uniform(np.log(20.0), np.log(20e3), n))
     ages = rng.uniform(0, 0.1, n) if aged else None
     field = CraterField(c, diam, ages, 0.4, 2.0, R)
-    got = field.relief_m(nodes, node_blocks(side), 0.0, np.arange(n))
+    got = field.relief_m(nodes, node_blocks(side), np.arange(n))
     uc = field.u
     rho = (np.arccos(np.clip(nodes @ uc.T, -1, 1)) * R / (diam / 2))  # (M, n)
     depth, rim, floor = (np.broadcast_to(x, rho.shape) for x in field._shape)

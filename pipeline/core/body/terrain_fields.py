@@ -18,8 +18,9 @@ diameters, each crater's shape kept by the field) over its footprint
 (ejecta_extent radii), at horizontal distance = great-circle arc from the centre, summed. Craters
 are indexed by size class (diameter octaves, a k-d tree of unit vectors each); the tiles made
 together ask once per class for the craters whose footprint reaches them and that are at least
-`min_cells` samples across, and each stamps its own by blocks of 8 x 8 nodes (only the blocks a
-footprint reaches).
+`min_cells` samples across, and each stamps its own by blocks of 4 x 4 nodes (only the blocks a
+footprint reaches; compiled, `terrain_kernels.stamp`). Scattered points (rim crests) take the
+craters whose footprint holds them straight from the trees (`relief_at`).
 """
 
 from __future__ import annotations
@@ -267,23 +268,14 @@ class CraterField:
         rad = np.arccos(np.clip(np.einsum("tmi,ti->tm", nodes, centre), -1, 1)).max(axis=1)
         rows = self.near(centre, rad, min_diam_m) if self.diam_m.size else [
             np.empty(0, np.int64)] * nodes.shape[0]
-        return np.stack([self.relief_m(nodes[i], blocks, float(min_diam_m[i]), rows[i])
+        return np.stack([self.relief_m(nodes[i], blocks, rows[i])
                          for i in range(nodes.shape[0])])
 
-    def relief_m(self, nodes: np.ndarray, blocks: np.ndarray, min_diam_m: float,
-                 rows: np.ndarray | None = None) -> np.ndarray:
+    def relief_m(self, nodes: np.ndarray, blocks: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """Summed crater heights (m) at unit vectors `nodes` (M, 3), grouped in `blocks`
-        (B, k) of node indices (M: padding), craters >= min_diam_m across (`rows`: the
-        candidates, if known)."""
+        (B, k) of node indices (M: padding), of the candidate craters `rows` (`near`)."""
         out = np.zeros(nodes.shape[0] + 1)
-        if not self.diam_m.size:
-            return out[:-1]
-        if rows is None:
-            centre = nodes.mean(axis=0)
-            centre /= np.linalg.norm(centre)
-            rad = float(np.arccos(np.clip(nodes @ centre, -1, 1)).max())
-            rows = self.near(centre, np.array([rad]), np.array([min_diam_m]))[0]
-        if not rows.size:
+        if not self.diam_m.size or not rows.size:
             return out[:-1]
         # each block's quarters (`node_blocks` orders them so): a small crater's footprint
         # meets one or two of them, and only their nodes are evaluated (compiled:
