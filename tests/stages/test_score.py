@@ -439,7 +439,7 @@ def test_layout_is_a_blueprint_with_the_error_and_consistency_views(runs):
         "/navigation/bias/gyro_deg_h", "/navigation/bias/accel_milli_g", "/imu/body_rate_deg_s",
         "/altimeter/slant_range_km", "/imu/true_bias/gyro_deg_h", "/imu/true_bias/accel_milli_g",
         "/navigation/updates/craters", "/navigation/updates", "/navigation/status",
-        "/identification"} | {
+        "/identification", "/camera_image"} | {
         f"/navigation/errors/{q}/{a}" for q in ("position_m", "velocity_m_s", "attitude_deg")
         for a in "xyz"}
     assert origins == expected
