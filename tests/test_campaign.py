@@ -101,6 +101,7 @@ def test_camera_mounting_is_drawn_per_run(workdir: Path, catalogue_db: Path):
     assert over["detection"]["sensor"] == "physical"
 
 
+@pytest.mark.slow
 def test_each_dispersion_reaches_its_run(workdir: Path, catalogue_db: Path):
     spec = load_spec(write_spec(workdir, catalogue_db, "kept", head="keep_runs = true\n"))
     facts = run_campaign(spec, local=True)
@@ -373,6 +374,7 @@ def duckdb_table(path: Path, name: str) -> pl.DataFrame:
         con.close()
 
 
+@pytest.mark.slow
 def test_campaign_sql_and_recording(spec_file: str, capsys: pytest.CaptureFixture):
     import rerun as rr
 

@@ -455,7 +455,8 @@ REAL = {  # file -> (format, rows read, kept, rejected, positional duplicates)
 }
 
 
-@pytest.mark.parametrize("name", sorted(REAL))
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow)  # 1.3 M rows
+                                  if n.startswith("lu1319381") else n for n in sorted(REAL)])
 def test_real_catalogue_still_ingests(tmp_path, name):
     path = shared_file(name)
     db = tmp_path / "real.duckdb"

@@ -313,6 +313,7 @@ def test_outputs_beside_the_campaigns_and_no_leftovers(sweep):
 # --- resume ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_second_sweep_runs_nothing_and_writes_the_same_table(in_sweep_root):
     sweep = in_sweep_root
     before = (sweep.out / "table1.csv").read_bytes()

@@ -496,6 +496,7 @@ def test_cli_ingest_with_source_and_db(workdir, tmp_path):
     assert run_catalogue_db(RunStore("c")) == workdir / "catalogue" / "cli.duckdb"
 
 
+@pytest.mark.slow
 def test_cli_ingest_of_a_file_never_replaces_the_default_catalogue(workdir, tmp_path):
     """Without --db a source file goes to catalogue/<stem>.duckdb and run <stem>: the shared
     default catalogue and the default run are untouched."""

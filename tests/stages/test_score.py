@@ -70,17 +70,31 @@ def run(run_id: str, db: Path, root: Path = Path("runs"), **sections) -> Run:
     return Run(cfg, store)
 
 
+class _Runs(dict):
+    """The read-only runs, each made the first time a test asks for it."""
+
+    def __init__(self, make: dict[str, object]) -> None:
+        super().__init__()
+        self._make = make
+
+    def __missing__(self, name: str) -> Run:
+        self[name] = self._make[name]()  # type: ignore[operator]
+        return self[name]
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory, catalogue_db) -> dict[str, Run]:
     """Read-only runs: clean; 20 % false matches (robust estimators: plain ones flag such frames
-    `inconsistent`) with an extra scoring window; a cap of 2 craters (no estimate anywhere)."""
+    `inconsistent`) with an extra scoring window; a cap of 2 craters (no estimate anywhere).
+    Made when first asked for: the last two only by the slow tests."""
     root = tmp_path_factory.mktemp("runs")
     windows = [{"name": k, "start_s": a, "end_s": b} for k, (a, b) in WINDOWS.items()]
-    return {"clean": run("clean", catalogue_db, root),
-            "false": run("false", catalogue_db, root, detection=FALSE_MATCHES,
-                         estimation={"robust": True},
-                         scoring={"windows": [*windows, EXTRA_WINDOW]}),
-            "cap2": run("cap2", catalogue_db, root, detection={"max_craters": 2})}
+    return _Runs({
+        "clean": lambda: run("clean", catalogue_db, root),
+        "false": lambda: run("false", catalogue_db, root, detection=FALSE_MATCHES,
+                             estimation={"robust": True},
+                             scoring={"windows": [*windows, EXTRA_WINDOW]}),
+        "cap2": lambda: run("cap2", catalogue_db, root, detection={"max_craters": 2})})
 
 
 def truth_of(r: Run, table: pl.DataFrame) -> pl.DataFrame:
@@ -134,7 +148,7 @@ def test_scores_have_one_row_per_method_and_frame(runs):
                                     "identification"}
 
 
-@pytest.mark.parametrize("name", ["clean", "false"])
+@pytest.mark.parametrize("name", ["clean", pytest.param("false", marks=pytest.mark.slow)])
 def test_errors_are_the_estimates_minus_the_truth(runs, name):
     """From estimates.parquet and trajectory.parquet: position errors (m, MCI), the 3-2-1 angles of
     R_true^T R_est and of R_est R_true^T (deg, read off the matrices), the methods' 1-sigma and
@@ -216,6 +230,7 @@ def test_crlb_is_that_of_the_used_craters_at_the_true_pose(runs):
     assert traj["frame"][-1] not in n_used["frame"]  # the last frame has no used crater
 
 
+@pytest.mark.slow  # the false-match run
 def test_false_matches_get_the_bound_of_the_craters_actually_seen(runs, catalogue_db):
     """With false matches, c_mci is the wrong crater's position; the CRLB must use the crater
     actually seen: its catalogue position (by crater_id, MCMF) turned into MCI by Rz(theta_m),
@@ -292,7 +307,8 @@ def expected_summary(scores: pl.DataFrame, windows: dict[str, tuple[float, float
     return out
 
 
-@pytest.mark.parametrize("name", ["clean", "false", "cap2"])
+@pytest.mark.parametrize("name", ["clean", pytest.param("false", marks=pytest.mark.slow),
+                                  pytest.param("cap2", marks=pytest.mark.slow)])
 def test_summary_windows_and_statistics(runs, name):
     r = runs[name]
     scores, summary = r.read("scores"), r.read("summary")
