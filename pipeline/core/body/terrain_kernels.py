@@ -183,16 +183,16 @@ def vec2xyf(u: np.ndarray, grad: bool) -> tuple[np.ndarray, np.ndarray, np.ndarr
             tt = 0.0
         za = abs(z)
         north = z > 0
-        if za > 2.0 / 3.0:
+        if za > 2.0 / 3.0:  # polar caps
             ntt = min(np.floor(tt), 3.0)
             tp = tt - ntt
-            tmp = np.sqrt(3.0) * sth / np.sqrt(1.0 + za)
+            tmp = np.sqrt(3.0) * sth / np.sqrt(1.0 + za)  # sqrt(3 (1 - |z|)), precise at the poles
             face = int(ntt) if north else int(ntt) + 8
             if north:
                 x, y = 1.0 - (1.0 - tp) * tmp, 1.0 - tp * tmp
             else:
                 x, y = tp * tmp, (1.0 - tp) * tmp
-        else:
+        else:  # equatorial zone (|z| <= 2/3)
             jp = 0.5 + tt - 0.75 * z
             jm = 0.5 + tt + 0.75 * z
             ifp, ifm = np.floor(jp), np.floor(jm)
@@ -207,6 +207,8 @@ def vec2xyf(u: np.ndarray, grad: bool) -> tuple[np.ndarray, np.ndarray, np.ndarr
         xs[k], ys[k], faces[k] = min(max(x, 0.0), 1.0), min(max(y, 0.0), 1.0), face
         if not grad:
             continue
+        # chain rule: d tt = (2 / pi) d phi, grad phi = (-u_y, u_x, 0) / sth^2,
+        # grad z = e_z - z u; polar: d tmp = -3 sign(z) d z / (2 tmp)
         s2 = max(sth * sth, 1e-300)
         d_tt = (2.0 / np.pi) * np.array([-uy, ux, 0.0]) / s2
         d_z = np.array([0.0, 0.0, 1.0]) - z * u[k]
