@@ -277,19 +277,16 @@ class CraterField:
         out = np.zeros(nodes.shape[0] + 1)
         if not self.diam_m.size or not rows.size:
             return out[:-1]
-        # each block's quarters (`node_blocks` orders them so): a small crater's footprint
-        # meets one or two of them, and only their nodes are evaluated (compiled:
-        # `terrain_kernels`)
+        # a small crater's footprint meets one or two blocks: only their nodes are evaluated
+        # (compiled: `terrain_kernels`)
         from pipeline.core.body import terrain_kernels  # lazy: the compiler where tiles are made
 
-        q = 4 if blocks.shape[1] % 4 == 0 and blocks.shape[1] >= 16 else 1
-        quarters = blocks.reshape(blocks.shape[0] * q, -1)
-        qc, qr = _caps(np.concatenate([nodes, nodes[:1]])[quarters])
+        bc, br = _caps(np.concatenate([nodes, nodes[:1]])[blocks])
         depth, rim, floor = (a[rows] for a in self._shape)
         tau = (np.full(rows.size, -1.0) if self.degradation is None
                else self.degradation[rows])
         out[:-1] = terrain_kernels.stamp(
-            nodes, quarters, qc, qr, self.u[rows], self.diam_m[rows] / 2.0 / self.radius_m,
+            nodes, blocks, bc, br, self.u[rows], self.diam_m[rows] / 2.0 / self.radius_m,
             depth, rim, floor, tau, self.extent, self._tables(), crater_shape.MAX_DEGRADATION)
         return out[:-1]
 
@@ -301,13 +298,12 @@ def _caps(nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return c, np.arccos(np.clip(np.einsum("bkj,bj->bk", nodes, c).min(axis=1), -1, 1))
 
 
-def node_blocks(side: int, block: int = 8) -> np.ndarray:
-    """(B, block^2) indices of the nodes of a side x side grid in blocks, each block's quarters
-    (block / 2 squares) one after another; the ragged last blocks are padded with side^2 (a
-    padding index)."""
-    nb, half = -(-side // block), block // 2
+def node_blocks(side: int, block: int = 4) -> np.ndarray:
+    """(B, block^2) indices of the nodes of a side x side grid in blocks; the ragged last blocks
+    are padded with side^2 (a padding index)."""
+    nb = -(-side // block)
     r = np.arange(nb * block)
     rr, cc = np.meshgrid(r, r, indexing="ij")
     flat = np.where((rr < side) & (cc < side), rr * side + cc, side * side)
-    return (flat.reshape(nb, 2, half, nb, 2, half).transpose(0, 3, 1, 4, 2, 5)
+    return (flat.reshape(nb, block, nb, block).transpose(0, 2, 1, 3)
             .reshape(nb * nb, block * block))

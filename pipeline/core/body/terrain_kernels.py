@@ -3,7 +3,7 @@
 
 - `stamp`: the profile arithmetic of `crater_shape.crater_profile` (the fresh Pike 1977 shape
   with the McGetchin et al. 1973 ejecta taper, or the diffused basis tables looked up
-  bilinearly), one crater at a time over the quarter blocks of nodes its footprint meets;
+  bilinearly), one crater at a time over the 4 x 4 blocks of nodes its footprint meets;
 - `xyf2vec`, `vec2xyf`: `tiles.xyf2vec` and `tiles.vec2xyf`, the HEALPix face coordinates
   and their unit vectors (every tile node, every terrain query);
 - `bicubic`: `Terrain._sample`'s Catmull-Rom read of the tiles' nodes;
@@ -54,28 +54,28 @@ def _profile(rho: float, depth: float, rim: float, floor: float, tau: float, ext
 
 
 @numba.njit(cache=True, nogil=True)
-def stamp(nodes: np.ndarray, quarters: np.ndarray, q_centre: np.ndarray, q_radius: np.ndarray,
+def stamp(nodes: np.ndarray, blocks: np.ndarray, b_centre: np.ndarray, b_radius: np.ndarray,
           c_u: np.ndarray, c_radius_rad: np.ndarray, c_depth: np.ndarray, c_rim: np.ndarray,
           c_floor: np.ndarray, c_tau: np.ndarray, extent: float, tables: np.ndarray,
           max_tau: float) -> np.ndarray:
     """Summed heights (M,) at unit nodes (M, 3) of craters (unit centres (K, 3), radii (K,)
     rad, depth, rim height (m), floor fraction, normalised age (< 0: fresh)), each over the
-    quarter blocks (Q, k) of node indices (M: padding; centres (Q, 3), radii (Q,) rad) that
+    blocks (B, k) of node indices (M: padding; centres (B, 3), radii (B,) rad) that
     its footprint (extent radii) meets; `tables` as `_profile`'s."""
     m = nodes.shape[0]
     out = np.zeros(m)
-    # chords: a quarter is out of a footprint when |c - q| > chord(q's radius) + chord(reach)
-    q_chord = 2.0 * np.sin(np.minimum(q_radius, np.pi) / 2.0)
+    # chords: a block is out of a footprint when |c - b| > chord(b's radius) + chord(reach)
+    b_chord = 2.0 * np.sin(np.minimum(b_radius, np.pi) / 2.0)
     for c in range(c_u.shape[0]):
         ux, uy, uz = c_u[c, 0], c_u[c, 1], c_u[c, 2]
         reach = 2.0 * np.sin(min(extent * c_radius_rad[c], np.pi) / 2.0)
-        for q in range(quarters.shape[0]):
-            dx, dy, dz = ux - q_centre[q, 0], uy - q_centre[q, 1], uz - q_centre[q, 2]
-            lim = q_chord[q] + reach
+        for q in range(blocks.shape[0]):
+            dx, dy, dz = ux - b_centre[q, 0], uy - b_centre[q, 1], uz - b_centre[q, 2]
+            lim = b_chord[q] + reach
             if dx * dx + dy * dy + dz * dz > lim * lim:
                 continue
-            for j in range(quarters.shape[1]):
-                i = quarters[q, j]
+            for j in range(blocks.shape[1]):
+                i = blocks[q, j]
                 if i >= m:
                     continue
                 gx, gy, gz = nodes[i, 0] - ux, nodes[i, 1] - uy, nodes[i, 2] - uz
