@@ -10,8 +10,10 @@ table with the prefix `touchdown_`. Over the runs:
   circles;
 - touchdown speeds and tilt, the propellant used and left (the margin);
 - the miss split between navigation and guidance: miss = flight-technical error - knowledge
-  error, so the RMS of each over the runs says whose the miss is (their shares of the sum of
-  the two mean squares).
+  error + the hazard divert, so the RMS of each over the runs says whose the miss is (the
+  navigation's and the guidance's shares of the sum of their two mean squares; the divert, a
+  choice of the lidar, apart);
+- the hazard scans' outcomes (kept, diverted, no safe site) and the divert.
 """
 
 from __future__ import annotations
@@ -84,6 +86,7 @@ def landing_section(per_run: pl.DataFrame, folder: Path) -> str:
                   f"{np.sqrt(ms_k):.2f} m over the landed runs, the flight-technical error "
                   f"(guidance against its own target) {np.sqrt(ms_f):.2f} m: navigation makes "
                   f"{nav_share:.0%} of the mean square of the two.", "",
+                  *_hazard_lines(flown, landed),
                   f"![landing ellipse]({FIGURE})", ""]
         rows = []
         for name, label in (("vertical_speed_m_s", "vertical speed at touchdown (m/s)"),
@@ -92,7 +95,8 @@ def landing_section(per_run: pl.DataFrame, folder: Path) -> str:
                             ("propellant_used_kg", "propellant used (kg)"),
                             ("propellant_left_kg", "propellant left (kg)"),
                             ("knowledge_error_m", "knowledge error (m)"),
-                            ("fte_m", "flight-technical error (m)"), ("miss_m", "miss (m)")):
+                            ("fte_m", "flight-technical error (m)"),
+                            ("divert_m", "hazard divert (m)"), ("miss_m", "miss (m)")):
             v = landed[PREFIX + name].cast(pl.Float64).to_numpy()
             rows.append(f"| {label} | {np.min(v):.3g} | {np.median(v):.3g} | "
                         f"{np.percentile(v, 99):.3g} | {np.max(v):.3g} |")
@@ -100,6 +104,19 @@ def landing_section(per_run: pl.DataFrame, folder: Path) -> str:
                   "|---|---:|---:|---:|---:|", *rows, ""]
         _figure(pts, mean, axes, major, folder / FIGURE)
     return "\n".join(lines)
+
+
+def _hazard_lines(flown: pl.DataFrame, landed: pl.DataFrame) -> list[str]:
+    """The hazard scans' outcomes over the runs (none without a lidar)."""
+    col = PREFIX + "hazard_status"
+    if col not in flown.columns or bool((flown[col] == "off").all()):
+        return []
+    counts = flown[col].value_counts(sort=True)
+    said = ", ".join(f"{s} {c}" for s, c in counts.iter_rows())
+    divert = landed.filter(pl.col(col) == "diverted")[PREFIX + "divert_m"].to_numpy()
+    moved = (f"; the landed runs that diverted moved {np.median(divert):.1f} m (median, max "
+             f"{np.max(divert):.1f} m)" if len(divert) else "")
+    return [f"Hazard avoidance (one lidar scan per run): {said}{moved}.", ""]
 
 
 def _figure(pts: np.ndarray, mean: np.ndarray, axes: np.ndarray, major: np.ndarray,

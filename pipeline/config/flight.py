@@ -1,6 +1,6 @@
 """The closed loop's sections (stage `fly`): the lander (truth and what the flight software
 believes of it), the site and the descent orbit that reaches it, guidance, the loop's rates and
-the touchdown limits; and the Doppler velocimeter.
+the touchdown limits; the Doppler velocimeter; hazard detection and avoidance.
 
 With `flight.closed_loop = false` (the paper's case) nothing here is read: the open-loop stages
 (trajectory, imu, detect, navigate) run instead.
@@ -175,3 +175,39 @@ class VelocimeterConfig:
         if self.assumed_sigma_m_s is not None:
             _num(self.assumed_sigma_m_s, k + "assumed_sigma_m_s", 1e-4, 100.0, unit="m/s",
                  why='or "truth"')
+
+
+@dataclass(frozen=True)
+class HazardConfig:
+    """Hazard detection and avoidance (`pipeline.core.guidance.hazard`): a scanning lidar about
+    body +z, one scan at scan_alt_m above the target (navigated), the target moved to the
+    nearest safe site."""
+
+    enabled: bool
+    scan_alt_m: float  # m above the target (navigated): the scan
+    half_angle_deg: float  # the beam pattern's half-width about body +z
+    beams: int  # per side of the square pattern
+    range_sigma_m: float  # 1-sigma range noise
+    max_range_m: float  # no return beyond
+    grid_step_m: float  # the hazard map's grid
+    safe_slope_deg: float  # safe: a plane over the landing gear's span this steep at most
+    clearance_m: float  # and this far from unsafe or unseen ground
+    divert_m: float  # the largest move of the target
+    min_coverage: float  # the share of the footprint's cells with returns, at least
+
+    def __post_init__(self) -> None:
+        k = "hazard."
+        _num(self.scan_alt_m, k + "scan_alt_m", 1.0, 5_000.0, unit="m")
+        _num(self.half_angle_deg, k + "half_angle_deg", 0.0, 60.0, lo_open=True, unit="deg")
+        _num(self.beams, k + "beams", 8, 1_024)
+        _num(self.range_sigma_m, k + "range_sigma_m", 0.0, 10.0, unit="m")
+        _num(self.max_range_m, k + "max_range_m", self.scan_alt_m, 100_000.0, unit="m",
+             why="at least the scan altitude")
+        _num(self.grid_step_m, k + "grid_step_m", 0.05, 10.0, unit="m")
+        _num(self.safe_slope_deg, k + "safe_slope_deg", 0.0, 60.0, lo_open=True, unit="deg")
+        _num(self.clearance_m, k + "clearance_m", 0.0, 100.0, unit="m")
+        _num(self.divert_m, k + "divert_m", 0.0, 1_000.0, unit="m")
+        _num(self.min_coverage, k + "min_coverage", 0.0, 1.0, lo_open=True)
+        _check(self.divert_m / self.grid_step_m <= 2_000, k + "grid_step_m",
+               f"= {self.grid_step_m:g} m over a divert of {self.divert_m:g} m: a hazard map "
+               "of more than 4,000 x 4,000 nodes")

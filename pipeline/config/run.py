@@ -13,7 +13,7 @@ from pipeline.config.catalogue import CatalogueConfig
 from pipeline.config.checks import MAX_SEED, _check, _num, validate_run_id
 from pipeline.config.detection import DetectionConfig, mounting_dcm
 from pipeline.config.estimation import EstimationConfig
-from pipeline.config.flight import FlightConfig, VelocimeterConfig
+from pipeline.config.flight import FlightConfig, HazardConfig, VelocimeterConfig
 from pipeline.config.inertial import MAX_IMU_SAMPLES, AltimeterConfig, ImuConfig
 from pipeline.config.navigation import IdentificationConfig, NavigationConfig
 from pipeline.config.render import RenderConfig
@@ -44,6 +44,7 @@ class RunConfig:
     render: RenderConfig
     flight: FlightConfig
     velocimeter: VelocimeterConfig
+    hazard: HazardConfig
     terrain: TerrainConfig
     map: MapConfig
     scoring: ScoringConfig

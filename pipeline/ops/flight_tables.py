@@ -6,7 +6,12 @@ error, touchdown speeds and attitude, the local slope, the propellant used and l
 
 The miss decomposes in the site's tangent plane: miss = true touchdown - target, knowledge error
 = navigated - true (at touchdown), flight-technical error = navigated - target (what guidance
-left of its own target), so miss = flight-technical error - knowledge error.
+left of its own target), so miss = flight-technical error - knowledge error + divert. The
+divert is the hazard scan's move of the target (0 without one): the miss is from the planned
+target, the flight-technical error from the one flown to. The hazard columns: the scan's status
+(`pipeline.core.guidance.hazard.HAZARD_STATUSES`), time (s), the divert (m, horizontal, and its
+downrange and crossrange parts), the lidar's slope (deg) at the target flown to and at the one
+before, the share of safe ground within the divert.
 """
 
 from __future__ import annotations
@@ -148,7 +153,6 @@ def touchdown_table(rec: FlightRecord, target: Target, heading_deg: float, vehic
     nan = math.nan
     row: dict[str, Any] = {"status": rec.status, "reason": rec.reason, **facts}
     c = rec.contact
-    up, east, north, down, cross = _site_axes(target, heading_deg)
     keys = ("t_s", "lat_deg", "lon_deg", "miss_m", "miss_downrange_m", "miss_crossrange_m",
             "miss_east_m", "miss_north_m", "knowledge_error_m", "knowledge_downrange_m",
             "knowledge_crossrange_m", "knowledge_vertical_m", "fte_m", "fte_downrange_m",
@@ -156,6 +160,17 @@ def touchdown_table(rec: FlightRecord, target: Target, heading_deg: float, vehic
             "slope_deg", "propellant_used_kg", "propellant_left_kg", "t_out_of_fuel_s")
     row.update(dict.fromkeys(keys, nan))
     row["t_out_of_fuel_s"] = rec.t_out_of_fuel_s
+    up, east, north, down, cross = _site_axes(target, heading_deg)
+    s = rec.safe_site
+    flown = rec.target if rec.target is not None else target
+    moved = flown.r_mcmf_m - target.r_mcmf_m
+    row.update({"hazard_status": rec.hazard_status, "hazard_t_s": rec.hazard_t_s,
+                "divert_m": float(np.hypot(moved @ east, moved @ north)),
+                "divert_downrange_m": float(moved @ down),
+                "divert_crossrange_m": float(moved @ cross),
+                "hazard_slope_deg": s.slope_deg if s is not None else nan,
+                "hazard_slope_before_deg": s.slope_before_deg if s is not None else nan,
+                "hazard_safe_share": s.safe_share if s is not None else nan})
     if c is not None:
         theta = MOON_ROTATION_RATE_RAD_S * c.t_s
         p_true = frames.mcmf_from_mci(c.r_mci_m, np.asarray(theta))
@@ -165,7 +180,7 @@ def touchdown_table(rec: FlightRecord, target: Target, heading_deg: float, vehic
         p_nav = (frames.mcmf_from_mci(nav.x.r_mci_m, np.asarray(theta)) if nav is not None
                  else np.full(3, nan))
         k = p_nav - p_true
-        f = p_nav - target.r_mcmf_m
+        f = p_nav - flown.r_mcmf_m  # against the guidance's own (final) target
         td = touchdown(c, target)
         slope = contact_slope_deg(c, surface, limits)
         row.update({

@@ -28,6 +28,7 @@ from pipeline.core.guidance import ApolloGuidance, ApolloOptions
 from pipeline.core.guidance.apollo import plan_descent
 from pipeline.core.guidance.base import NavigatedState, Target
 from pipeline.core.guidance.fly import TouchdownLimits
+from pipeline.core.guidance.hazard import HazardOptions
 from pipeline.core.guidance.targeting import DescentOrbit, descent_orbit
 from pipeline.core.math.frames import unit_mcmf_from_latlon
 from pipeline.core.navigation.eskf import NavState
@@ -93,6 +94,7 @@ class FlyOptions:
     target_low_gate_alt_m: float
     rates: Rates
     limits: TouchdownLimits
+    hazard: HazardOptions | None  # the hazard lidar and the safe-site choice (None: none)
 
 
 def site_target(o: FlyOptions, flight_map: Surface) -> Target:
@@ -220,6 +222,7 @@ def run_flight(o: FlyOptions, craters: CraterArrays, indexes: IndexCache | None,
                           crater_updates=o.crater_updates, count_sightings=True)
     law = ApolloGuidance(replace(o.guidance, ignition_t_s=orbit.t_pdi_s), o.vehicle_belief)
     fsw = FlightSoftware(navigator, law, target, o.vehicle_belief, o.vehicle_belief.wet_mass_kg,
-                         o.rates.dt_s, o.rates.max_steps, o.sensors, o.guidance_input)
+                         o.rates.dt_s, o.rates.max_steps, o.sensors, o.guidance_input,
+                         o.hazard, o.limits.slope_baseline_m)
     record = fly(world, fsw, camera, o.rates, o.limits, advance)
     return record, state0, x0, target, orbit, sc

@@ -3,18 +3,25 @@ the error-state filter, crater identification on it) fed by the sensors, and a g
 (`pipeline.core.guidance`) flying the navigated state to the target. It books the mass it
 believes from the thrust it commands and the Isp it assumes. It reads only what the sensors
 give; with `guidance_input = "truth"` the law flies the true state instead (perfect navigation:
-what guidance alone misses by) while the navigator still runs beside it.
+what guidance alone misses by) while the navigator still runs beside it. With a hazard lidar it
+scans the ground once, at its scan altitude above the target (navigated), and moves the target
+to the safe site nearest it (`pipeline.core.guidance.hazard`): the map the scan makes is placed
+by the navigated pose, so the new target is relative to where the lander believes it is.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from pipeline.core.dynamics.powered import G0_M_S2, LanderState, Vehicle
 from pipeline.core.guidance.base import GuidanceLaw, NavigatedState, Target, ThrustCommand
+from pipeline.core.guidance.hazard import HazardOptions, SafeSite, beam_directions_body, safe_site
+from pipeline.core.math.constants import MOON_ROTATION_RATE_RAD_S
+from pipeline.core.math.frames import mcmf_from_mci
+from pipeline.core.math.rotations import dcm_from_q
 from pipeline.core.navigation import filter
 from pipeline.core.navigation.eskf import NavState
 from pipeline.core.navigation.models import Record
@@ -35,8 +42,16 @@ class FlightSoftware:
 
     def __init__(self, navigator: Navigator, law: GuidanceLaw, target: Target,
                  vehicle: Vehicle, mass0_kg: float, dt_s: float, n_steps: int,
-                 sensors: SensorBelief, guidance_input: str = "navigator") -> None:
+                 sensors: SensorBelief, guidance_input: str = "navigator",
+                 hazard: HazardOptions | None = None, slope_baseline_m: float = 4.0) -> None:
         self.navigator, self.law, self.target = navigator, law, target
+        self.planned_target = target
+        self.hazard, self.slope_baseline_m = hazard, slope_baseline_m
+        self.hazard_beams_body = (beam_directions_body(hazard) if hazard is not None
+                                  else np.zeros((0, 3)))
+        self.safe_site: SafeSite | None = None
+        self.hazard_t_s = math.nan
+        self.hazard_points_mcmf_m = np.zeros((0, 3))  # the scan's ground points as placed
         self.vehicle, self.mass_kg, self.dt_s = vehicle, mass0_kg, dt_s
         self.sensors, self.guidance_input = sensors, guidance_input
         self.imu = filter.ImuSamples(dt_s, np.zeros((n_steps, 3)), np.zeros((n_steps, 3)), 0.0)
@@ -69,6 +84,36 @@ class FlightSoftware:
         if v_body_m_s is not None:
             self.navigator.update([filter.VelocimeterSample(
                 t_s, v_body_m_s, self.sensors.velocimeter_sigma_m_s)])
+
+    def scan_due(self, t_s: float) -> bool:
+        """Whether the hazard scan is due: a lidar, not yet scanned, and the navigated height
+        above the target's radius at most its scan altitude."""
+        x = self.estimate(t_s)
+        if self.hazard is None or not math.isnan(self.hazard_t_s) or x is None:
+            return False
+        height = float(np.linalg.norm(x.r_mci_m) - np.linalg.norm(self.target.r_mcmf_m))
+        return height <= self.hazard.scan_alt_m
+
+    def hazard_scan(self, t_s: float, ranges_m: np.ndarray) -> None:
+        """The lidar's ranges (m, along `hazard_beams_body`) placed on the ground by the
+        navigated pose at t_s (s) (MCMF), and the target moved to the safe site."""
+        assert self.hazard is not None
+        x = self.estimate(t_s)
+        assert x is not None
+        theta = np.asarray(MOON_ROTATION_RATE_RAD_S * t_s)
+        beams = mcmf_from_mci(self.hazard_beams_body @ dcm_from_q(x.q_mci_from_body).T, theta)
+        points = mcmf_from_mci(x.r_mci_m, theta) + ranges_m[:, None] * beams
+        self.hazard_t_s, self.hazard_points_mcmf_m = t_s, points
+        self.safe_site = safe_site(points, self.target.r_mcmf_m, self.hazard,
+                                   self.slope_baseline_m)
+        self.target = replace(self.target, r_mcmf_m=self.safe_site.r_mcmf_m)
+
+    @property
+    def hazard_status(self) -> str:
+        """`pipeline.core.guidance.hazard.HAZARD_STATUSES` of this flight so far."""
+        if self.hazard is None:
+            return "off"
+        return "not_scanned" if self.safe_site is None else self.safe_site.status
 
     # --- guidance out -------------------------------------------------------------------------
 

@@ -5,10 +5,12 @@ to t_k when a sensor samples or a record falls then (between, guidance extrapola
 nominal state on the IMU, as flight software propagates its state at a higher rate than its
 covariance); the camera's frame (every `frame_every` steps) is sensed and fused;
 the altimeter's and the velocimeter's samples likewise; the truth and the navigator are
-recorded (at the frames and the record grid); guidance commands the thrust and attitude held
-over the next `guidance_every` steps (zero-order hold); the world flies one step and the IMU's
-increments go to the flight software. The flight ends at contact with the surface, when the
-navigator can no longer be flown on, or at the step limit.
+recorded (at the frames and the record grid); at the guidance step the hazard scan falls due
+(`FlightSoftware.scan_due`), the lidar samples the world and the target moves; guidance
+commands the thrust and attitude held over the next `guidance_every` steps (zero-order hold);
+the world flies one step and the IMU's increments go to the flight software. The flight ends
+at contact with the surface, when the navigator can no longer be flown on, or at the step
+limit.
 
 Outcomes: `landed` (contact within the touchdown limits: speeds, tilt and the ground's slope),
 `crashed` (outside them),
@@ -28,6 +30,7 @@ from pipeline.core.body.surface import Surface
 from pipeline.core.dynamics.powered import LanderState
 from pipeline.core.guidance.base import Target
 from pipeline.core.guidance.fly import TouchdownLimits, touchdown
+from pipeline.core.guidance.hazard import SafeSite
 from pipeline.core.math.constants import MOON_ROTATION_RATE_RAD_S
 from pipeline.core.math.frames import mcmf_from_mci
 from pipeline.core.navigation.models import Record
@@ -85,6 +88,10 @@ class FlightRecord:
     imu_dtheta_rad: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     imu_dv_m_s: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     t_out_of_fuel_s: float = math.nan
+    target: Target | None = None  # the target flown to at the end (moved by a hazard scan)
+    hazard_status: str = "off"  # pipeline.core.guidance.hazard.HAZARD_STATUSES
+    hazard_t_s: float = math.nan
+    safe_site: SafeSite | None = None
 
 
 def fly(world: World, fsw: FlightSoftware, camera: Camera | None, rates: Rates,
@@ -116,6 +123,11 @@ def fly(world: World, fsw: FlightSoftware, camera: Camera | None, rates: Rates,
             fsw.velocimeter(t, v)
         if rec_now:
             _record(out, world, fsw, t, k // rates.frame_every if frame_now else -1)
+        if guide_now and fsw.scan_due(t):
+            h = fsw.hazard
+            assert h is not None
+            fsw.hazard_scan(t, world.hazard_lidar(fsw.hazard_beams_body, h.range_sigma_m,
+                                                  h.max_range_m))
         if guide_now:
             why = fsw.diverged()
             if why is not None:
@@ -154,6 +166,8 @@ def fly(world: World, fsw: FlightSoftware, camera: Camera | None, rates: Rates,
     out.imu_dv_m_s = fsw.imu.dv_m_s[:out.steps].copy()
     out.t_out_of_fuel_s = world.t_out_of_fuel_s
     out.status = _status(out, world, fsw.target, limits)
+    out.target, out.hazard_status = fsw.target, fsw.hazard_status
+    out.hazard_t_s, out.safe_site = fsw.hazard_t_s, fsw.safe_site
     return out
 
 

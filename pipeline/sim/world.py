@@ -80,6 +80,7 @@ class World:
         self.accel_white = grade.accel.random_walk * root * rng.standard_normal((n_steps, 3))
         self.altimeter_rng = stream(seed, "altimeter")
         self.velocimeter_rng = stream(seed, "velocimeter")
+        self.hazard_rng = stream(seed, "hazard_lidar")
         self.last: Step | None = None
         self.t_out_of_fuel_s = math.nan
         self._clear_m = 0.0  # the distance the lander can fly before contact is possible
@@ -192,6 +193,17 @@ class World:
             return math.nan, true
         rho = true + (a.sigma_m + a.sigma_share * true) * noise
         return (rho + a.fault_bias_m if in_fault and a.fault == "bias" else rho), true
+
+    def hazard_lidar(self, beams_body: np.ndarray, sigma_m: float, max_range_m: float
+                     ) -> np.ndarray:
+        """Slant ranges (m) along unit beams (N, 3) (body axes) from the true pose to the
+        surface, read at `CONTACT_RESOLUTION_M`, with noise sigma_m (1-sigma); NaN: no return
+        within max_range_m (`pipeline.core.guidance.hazard`)."""
+        noise = self.hazard_rng.standard_normal(len(beams_body))
+        dirs = beams_body @ self.dcm_body_from_mcmf()
+        r = np.broadcast_to(self.r_mcmf_m(), dirs.shape)
+        true = self.surface.intersect(r, dirs, CONTACT_RESOLUTION_M, max_range_m)
+        return true + sigma_m * noise
 
     def velocimeter(self) -> np.ndarray | None:
         """The measured velocity relative to the ground (m/s, body axes), or None above the

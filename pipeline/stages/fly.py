@@ -19,6 +19,7 @@ from pipeline.core.body.terrain import MapErrorOptions, TerrainOptions
 from pipeline.core.body.terrain_fields import LatLonGrid
 from pipeline.core.guidance import ApolloOptions
 from pipeline.core.guidance.fly import TouchdownLimits
+from pipeline.core.guidance.hazard import HazardOptions
 from pipeline.core.math.frames import latlon_from_mcmf, unit_mcmf_from_latlon
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
@@ -107,7 +108,18 @@ def options(cfg: RunConfig) -> FlyOptions:
                     every(a.rate_hz), every(v.rate_hz), every(cfg.imu.record_rate_hz),
                     math.ceil(f.max_duration_s * steps)),
         limits=TouchdownLimits(f.max_vertical_speed_m_s, f.max_horizontal_speed_m_s,
-                               f.max_tilt_deg, f.max_slope_deg, f.slope_baseline_m))
+                               f.max_tilt_deg, f.max_slope_deg, f.slope_baseline_m),
+        hazard=hazard_options(cfg))
+
+
+def hazard_options(cfg: RunConfig) -> HazardOptions | None:
+    """The hazard lidar's options (config section hazard), None without one."""
+    h = cfg.hazard
+    if not h.enabled:
+        return None
+    return HazardOptions(h.scan_alt_m, h.half_angle_deg, h.beams, h.range_sigma_m,
+                         h.max_range_m, h.grid_step_m, h.safe_slope_deg, h.clearance_m,
+                         h.divert_m, h.min_coverage)
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -196,7 +208,10 @@ def run(ctx: StageContext) -> StageResult:
            f"touchdown {row['vertical_speed_m_s']:.2f} m/s down, "
            f"{row['horizontal_speed_m_s']:.2f} m/s across, "
            f"{row['propellant_left_kg']:.1f} kg of propellant left"
-           if rec.contact is not None else ""),
+           if rec.contact is not None else "")
+        + ("" if rec.hazard_status == "off" else
+           f"; hazard scan: {rec.hazard_status.replace('_', ' ')}"
+           + (f" {row['divert_m']:.2f} m" if rec.hazard_status == "diverted" else "")),
         f"wrote {folder / 'touchdown.parquet'}, guidance.parquet, trajectory.parquet, imu.parquet,"
         " imu_truth.parquet, altimeter.parquet, detections.parquet, frames.parquet, "
         "navigation.parquet, site_terrain.parquet",
@@ -212,7 +227,7 @@ def closed_loop(cfg: RunConfig) -> bool:
 STAGE = Stage(
     name="fly",
     doc="the closed loop: guidance flies the lander to the site on the navigator's estimate",
-    reads=("flight", "velocimeter", "trajectory.frame_rate_hz", "trajectory.epoch_utc",
+    reads=("flight", "velocimeter", "hazard", "trajectory.frame_rate_hz", "trajectory.epoch_utc",
            "detection", "identification", "navigation", "estimation", "imu", "altimeter",
            "terrain", "map", "seed"),
     inputs=("catalogue.json",),

@@ -134,7 +134,10 @@ TOUCHDOWN = TableSchema("touchdown", {
     **{f"knowledge{s}_m": F64 for s in ("_error", "_downrange", "_crossrange", "_vertical")},
     **{f"fte{s}_m": F64 for s in ("", "_downrange", "_crossrange")},
     "vertical_speed_m_s": F64, "horizontal_speed_m_s": F64, "tilt_deg": F64, "slope_deg": F64,
-    "propellant_used_kg": F64, "propellant_left_kg": F64, "t_out_of_fuel_s": F64})
+    "propellant_used_kg": F64, "propellant_left_kg": F64, "t_out_of_fuel_s": F64,
+    "hazard_status": STR, "hazard_t_s": F64, "divert_m": F64, "divert_downrange_m": F64,
+    "divert_crossrange_m": F64, "hazard_slope_deg": F64,
+    "hazard_slope_before_deg": F64, "hazard_safe_share": F64})
 SITE_TERRAIN = TableSchema("site_terrain", {
     "east_m": F64, "north_m": F64, "lat_deg": F64, "lon_deg": F64, "world_height_m": F64,
     "map_height_m": F64, "world_slope_deg": F64})

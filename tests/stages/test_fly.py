@@ -64,11 +64,17 @@ def test_the_navigated_lander_lands_at_the_site(flown):
     assert t["vertical_speed_m_s"] <= 2.0 and t["horizontal_speed_m_s"] <= 1.0
     assert t["tilt_deg"] <= 10.0 and t["propellant_left_kg"] > 0.0
     assert t["miss_m"] < 20.0  # the paper's sensor at ~3 craters a frame, IMU and altimeter
-    # the decomposition: miss = flight-technical error - knowledge error (site plane)
-    assert t["miss_downrange_m"] == pytest.approx(t["fte_downrange_m"]
-                                                  - t["knowledge_downrange_m"], abs=1e-6)
-    assert t["miss_crossrange_m"] == pytest.approx(t["fte_crossrange_m"]
-                                                   - t["knowledge_crossrange_m"], abs=1e-6)
+    # the decomposition: miss = flight-technical error - knowledge error + divert (site plane)
+    assert t["miss_downrange_m"] == pytest.approx(
+        t["fte_downrange_m"] - t["knowledge_downrange_m"] + t["divert_downrange_m"], abs=1e-6)
+    assert t["miss_crossrange_m"] == pytest.approx(
+        t["fte_crossrange_m"] - t["knowledge_crossrange_m"] + t["divert_crossrange_m"],
+        abs=1e-6)
+    # the hazard lidar scanned at the low gate (30 m) and left the lander on safe ground
+    assert t["hazard_status"] in ("kept", "diverted")
+    assert t["t_s"] - 40.0 < t["hazard_t_s"] < t["t_s"] - 20.0  # ~30 s at 1 m/s before contact
+    assert t["hazard_slope_deg"] <= 8.0 and t["slope_deg"] <= 12.0
+    assert t["divert_m"] <= 12.0 + 1e-9
     assert math.hypot(t["miss_downrange_m"], t["miss_crossrange_m"]) == pytest.approx(
         t["miss_m"], rel=1e-9)
 

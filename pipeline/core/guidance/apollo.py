@@ -19,6 +19,9 @@ which turns with the Moon, so the site is fixed and the Moon's rotation is exact
 - terminal (P66): a vertical descent at the constant rate: the vertical rate held by a
   proportional loop, the horizontal position over the site by a critically damped loop, its
   tilt limited, the roll held (`roll_held_attitude`: the slew rate goes to the thrust axis).
+The target is read at every call: one moved after the plan (a re-designation, as Apollo's
+landing point designator allowed and hazard avoidance does) moves the vertical descent's hold
+point, so the divert is flown under the terminal loop's tilt limit; the gates stay.
 Each phase ends `switch_t_go_s` before its end time (the polynomial's gains grow as 1 / t_go^2).
 The commanded thrust is the vehicle's mass times the thrust acceleration (the polynomial's total
 acceleration minus the apparent gravity at the present state), clamped to the throttle range with
@@ -241,7 +244,10 @@ class ApolloGuidance:
         if self.phase == "approach" and plan.low_gate.t_s - t <= switch:
             self.phase = "terminal"
         if self.phase == "terminal":
-            a_cmd = self._terminal(r, v, g_eff, target)
+            # a target moved since the plan (a re-designation) moves the hold point
+            shift = plan.frame.dcm_mcmf_from_site.T @ (target.r_mcmf_m
+                                                       - plan.frame.r_site_mcmf_m)
+            a_cmd = self._terminal(r - shift, v, g_eff, target)
         else:
             gate = plan.high_gate if self.phase == "braking" else plan.low_gate
             a_cmd = quartic_coefficients(r, v, gate.r_site_m, gate.v_site_m_s,

@@ -22,6 +22,7 @@ TAGS: dict[str, int] = {
     "rough_velocity": 0x1D6,  # lost in space: the rough velocity a fix starts the filter with
     "render": 0x12E4D,  # per frame: the rendered surface's roughness and the sensor's noise
     "velocimeter": 0xD0F,  # the Doppler velocimeter's noise (the closed loop)
+    "hazard_lidar": 0x4A2D,  # the hazard lidar's range noise (the closed loop)
     # the world's, each within its own section's seed
     "degradation": 0xD17F,  # each world crater's normalised age (detection.world_seed)
     "terrain_base": 0xBA5E,  # the synthetic long-wavelength base (terrain.seed)

@@ -27,14 +27,17 @@ def landing_section(touchdown: pl.DataFrame, guidance: pl.DataFrame) -> str:
               "crossrange).", "",
               "The miss splits exactly: miss = flight-technical error (the navigated touchdown "
               "against guidance's own target) - knowledge error (the navigated minus the true "
-              "touchdown):", "",
+              "touchdown) + the hazard divert (the target's move):", "",
               "| m | horizontal | downrange | crossrange |", "|---|---:|---:|---:|",
               f"| miss | {t['miss_m']:.2f} | {t['miss_downrange_m']:+.2f} | "
               f"{t['miss_crossrange_m']:+.2f} |",
               f"| knowledge error | {t['knowledge_error_m']:.2f} | "
               f"{t['knowledge_downrange_m']:+.2f} | {t['knowledge_crossrange_m']:+.2f} |",
               f"| flight-technical error | {t['fte_m']:.2f} | {t['fte_downrange_m']:+.2f} | "
-              f"{t['fte_crossrange_m']:+.2f} |", "",
+              f"{t['fte_crossrange_m']:+.2f} |",
+              f"| hazard divert | {t['divert_m']:.2f} | {t['divert_downrange_m']:+.2f} | "
+              f"{t['divert_crossrange_m']:+.2f} |", "",
+              *_hazard_lines(t),
               f"Touchdown: {t['vertical_speed_m_s']:.2f} m/s down, "
               f"{t['horizontal_speed_m_s']:.2f} m/s across, tilt {t['tilt_deg']:.1f} deg on a "
               f"{t['slope_deg']:.1f} deg slope; propellant used {t['propellant_used_kg']:.1f} "
@@ -70,3 +73,18 @@ def fig_flight(guidance: pl.DataFrame, path: Path, title: str) -> None:
     axes[1].set_ylim(-0.05, 1.05)
     axes[0].set_ylim(bottom=0.0)
     _finish_stack(fig, axes, title, path)
+
+
+def _hazard_lines(t: dict) -> list[str]:
+    """The hazard scan's sentence (none without a lidar)."""
+    status = t["hazard_status"]
+    if status == "off":
+        return []
+    if status == "not_scanned":
+        return ["Hazard avoidance: the scan altitude was never reached.", ""]
+    verdict = {"kept": "the target kept", "diverted": f"the target moved {t['divert_m']:.2f} m",
+               "no_safe_site": "no safe ground within the divert: the target kept"}[status]
+    return [f"Hazard avoidance: the lidar scan at {t['hazard_t_s']:.1f} s saw "
+            f"{t['hazard_slope_before_deg']:.1f} deg under the target; {verdict}, to ground "
+            f"of {t['hazard_slope_deg']:.1f} deg ({t['hazard_safe_share']:.0%} of the ground "
+            "within reach safe).", ""]
