@@ -201,6 +201,23 @@ def touchdown_table(rec: FlightRecord, target: Target, heading_deg: float, vehic
     return pl.DataFrame([row])
 
 
+def hazard_scan_table(rec: FlightRecord, target: Target) -> pl.DataFrame:
+    """The hazard scan's ground points as the flight software placed them (its navigated pose):
+    east, north, up (m) from the planned target in its tangent plane, latitude, longitude (deg)
+    and height above the reference sphere (m); no rows without a scan, none for a beam without
+    a return."""
+    p = rec.hazard_points_mcmf_m
+    p = p[np.all(np.isfinite(p), axis=1)]
+    up, east, north, _, _ = _site_axes(target, 0.0)
+    d = p - target.r_mcmf_m
+    lat, lon, radius = frames.latlon_from_mcmf(p)
+    return pl.DataFrame({"east_m": d @ east, "north_m": d @ north, "up_m": d @ up,
+                         "lat_deg": np.degrees(lat), "lon_deg": np.degrees(lon),
+                         "height_m": np.asarray(radius) - MOON_RADIUS_M},
+                        schema={k: pl.Float64 for k in ("east_m", "north_m", "up_m", "lat_deg",
+                                                       "lon_deg", "height_m")})
+
+
 SITE_TERRAIN_HALF_M = 2_000.0  # the site's terrain table: +- this east and north of the target
 SITE_TERRAIN_STEP_M = 20.0
 

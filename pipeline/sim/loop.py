@@ -92,6 +92,7 @@ class FlightRecord:
     hazard_status: str = "off"  # pipeline.core.guidance.hazard.HAZARD_STATUSES
     hazard_t_s: float = math.nan
     safe_site: SafeSite | None = None
+    hazard_points_mcmf_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def fly(world: World, fsw: FlightSoftware, camera: Camera | None, rates: Rates,
@@ -168,6 +169,7 @@ def fly(world: World, fsw: FlightSoftware, camera: Camera | None, rates: Rates,
     out.status = _status(out, world, fsw.target, limits)
     out.target, out.hazard_status = fsw.target, fsw.hazard_status
     out.hazard_t_s, out.safe_site = fsw.hazard_t_s, fsw.safe_site
+    out.hazard_points_mcmf_m = fsw.hazard_points_mcmf_m
     return out
 
 

@@ -197,6 +197,7 @@ def run(ctx: StageContext) -> StageResult:
     tx.table("guidance", tables.guidance_table(rec, o.vehicle, o.vehicle_belief, world_surface))
     tx.table("touchdown", touchdown)
     tx.table("site_terrain", tables.site_terrain_table(world_surface, sc.surfaces.map, target))
+    tx.table("hazard_scan", tables.hazard_scan_table(rec, target))
     row = touchdown.row(0, named=True)
     tx.output("touchdown.json").write_text(json.dumps(row, indent=2, default=float) + "\n")
     folder = ctx.store.stage_dir("fly")
@@ -214,7 +215,7 @@ def run(ctx: StageContext) -> StageResult:
            + (f" {row['divert_m']:.2f} m" if rec.hazard_status == "diverted" else "")),
         f"wrote {folder / 'touchdown.parquet'}, guidance.parquet, trajectory.parquet, imu.parquet,"
         " imu_truth.parquet, altimeter.parquet, detections.parquet, frames.parquet, "
-        "navigation.parquet, site_terrain.parquet",
+        "navigation.parquet, site_terrain.parquet, hazard_scan.parquet",
         f"ask it: just sql --run {ctx.store.run_id} \"SELECT status, miss_m, knowledge_error_m, "
         "fte_m, vertical_speed_m_s FROM touchdown\"",
         f"look at it: rerun {folder / 'flight.rrd'}"))
@@ -234,7 +235,7 @@ STAGE = Stage(
     outputs=("trajectory.parquet", "trajectory.json", "imu.parquet", "imu_truth.parquet",
              "altimeter.parquet", "imu.json", "detections.parquet", "frames.parquet",
              "navigation.parquet", "navigation.json", "guidance.parquet", "touchdown.parquet",
-             "touchdown.json", "site_terrain.parquet"),
+             "touchdown.json", "site_terrain.parquet", "hazard_scan.parquet"),
     code=("pipeline.stages.fly",),
     run=run,
     visuals=("trajectory.rrd", "imu.rrd", "detection.rrd", "navigation.rrd", "flight.rrd"),

@@ -138,6 +138,9 @@ TOUCHDOWN = TableSchema("touchdown", {
     "hazard_status": STR, "hazard_t_s": F64, "divert_m": F64, "divert_downrange_m": F64,
     "divert_crossrange_m": F64, "hazard_slope_deg": F64,
     "hazard_slope_before_deg": F64, "hazard_safe_share": F64})
+HAZARD_SCAN = TableSchema("hazard_scan", {
+    "east_m": F64, "north_m": F64, "up_m": F64, "lat_deg": F64, "lon_deg": F64,
+    "height_m": F64})
 SITE_TERRAIN = TableSchema("site_terrain", {
     "east_m": F64, "north_m": F64, "lat_deg": F64, "lon_deg": F64, "world_height_m": F64,
     "map_height_m": F64, "world_slope_deg": F64})
@@ -146,7 +149,7 @@ TABLES: dict[str, TableSchema] = {t.name: t for t in (
     TRAJECTORY, IMU, IMU_TRUTH, ALTIMETER, DETECTIONS, FRAMES, ESTIMATES, NAVIGATION, SCORES,
     SUMMARY, BY_CRATERS_USED, NAVIGATION_SUMMARY, IDENTIFICATION, PIXEL_DETECTIONS,
     RENDERED_CRATERS, IMAGES, DETECTION_RECALL, CAMERA_IMAGES, GUIDANCE, TOUCHDOWN,
-    SITE_TERRAIN)}
+    HAZARD_SCAN, SITE_TERRAIN)}
 
 
 def check_table(name: str, frame: pl.DataFrame) -> None:

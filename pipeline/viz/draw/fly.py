@@ -28,3 +28,4 @@ def record_fly(ctx: Drawing) -> None:
         flight.log_flight(rec, table(ctx, "guidance.parquet"), touchdown, site,
                           table(ctx, "trajectory.parquet"))
         flight.log_site_terrain(rec, table(ctx, "site_terrain.parquet"))
+        flight.log_hazard_scan(rec, table(ctx, "hazard_scan.parquet"), row)

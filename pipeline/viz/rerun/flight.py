@@ -1,7 +1,9 @@
 """The closed loop (stage `fly`): the site, the thrust flown, and guidance's series.
 
 Entities: /world/moon/site (the target, MCMF: it turns with the Moon), /world/moon/site_terrain
-(the ground around it: a mesh of the world's heights, coloured by height), /world/spacecraft/thrust
+(the ground around it: a mesh of the world's heights, coloured by height), /world/moon/hazard_scan
+(the hazard lidar's ground points as the navigator placed them, at the scan's time),
+/world/spacecraft/thrust
 (the thrust flown, along body -z, its length the throttle times the chase scale), and series on
 `sim_time` alone (guidance runs at its own rate): /flight/throttle, /flight/mass_kg/{true,
 believed}, /flight/altitude_m, /flight/speed_m_s, /flight/phase (code), /flight/propellant_kg.
@@ -69,6 +71,22 @@ def log_flight(rec: rr.RecordingStream, guidance, touchdown, site_mcmf_m: np.nda
             [(u * float(np.linalg.norm(site_mcmf_m))).astype(np.float32)], radii=[100.0],
             colors=[TOUCHDOWN_COLOR],
             labels=[f"{row['status']}: {row['miss_m']:.1f} m from the site"]), static=True)
+
+
+def log_hazard_scan(rec: rr.RecordingStream, scan, touchdown: dict) -> None:
+    """The hazard lidar's ground points as the navigator placed them (MCMF, m), at the scan's
+    time, coloured from dark (low) to light (high); nothing without a scan."""
+    if scan.height == 0:
+        return
+    lat = np.radians(scan["lat_deg"].to_numpy())
+    lon = np.radians(scan["lon_deg"].to_numpy())
+    h = scan["height_m"].to_numpy()
+    pos = unit_mcmf_from_latlon(lat, lon) * (MOON_RADIUS_M + h)[:, None]
+    shade = (h - h.min()) / max(float(np.ptp(h)), 1e-9)
+    colour = np.stack([40 + 200 * shade, 120 + 120 * shade, np.full_like(shade, 255.0)], -1)
+    rec.set_time("sim_time", duration=float(touchdown["hazard_t_s"]))
+    rec.log("/world/moon/hazard_scan", rr.Points3D(
+        pos.astype(np.float32), radii=[0.15], colors=colour.astype(np.uint8)))
 
 
 def log_site_terrain(rec: rr.RecordingStream, site_terrain) -> None:
