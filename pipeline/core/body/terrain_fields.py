@@ -229,20 +229,28 @@ class CraterField:
 
     def relief_at(self, u: np.ndarray, min_diam_m: np.ndarray) -> np.ndarray:
         """Summed crater heights (m) at scattered unit vectors u (N, 3), each point from the
-        craters at least min_diam_m (N,) across: one k-d tree query per size class for all
-        points, then the (point, crater) pairs whose footprint holds the point."""
+        craters at least min_diam_m (N,) across: one dual-tree pair search per size class (the
+        class's craters against the points that ask it), then the (point, crater) pairs whose
+        footprint holds the point."""
         out = np.zeros(u.shape[0])
         pt_parts, row_parts = [], []
+        points: cKDTree | None = None  # over the points, for the dual-tree pair search
         for c in self.classes:
             ask = np.flatnonzero(min_diam_m <= c.diam_max_m)
             if not ask.size:
                 continue
             ang = min(self.extent * c.diam_max_m / 2 / self.radius_m, np.pi)
-            hits = c.tree.query_ball_point(u[ask], 2.0 * np.sin(ang / 2.0))
-            counts = np.fromiter((len(h) for h in hits), np.int64, len(hits))
-            if counts.sum():
-                pt_parts.append(np.repeat(ask, counts))
-                row_parts.append(c.rows[np.concatenate([h for h in hits if h]).astype(np.int64)])
+            chord = 2.0 * np.sin(ang / 2.0)
+            if ask.size == u.shape[0]:
+                points = cKDTree(u) if points is None else points
+                tree, of = points, ask
+            else:
+                tree, of = cKDTree(u[ask]), ask
+            pairs = c.tree.sparse_distance_matrix(tree, chord, output_type="ndarray")
+            if pairs.size:  # point by point, each point's craters in tree order
+                order = np.lexsort((pairs["i"], pairs["j"]))
+                pt_parts.append(of[pairs["j"][order]])
+                row_parts.append(c.rows[pairs["i"][order]])
         if not pt_parts:
             return out
         pt, rows = np.concatenate(pt_parts), np.concatenate(row_parts)
