@@ -15,7 +15,8 @@ from conftest import DEFAULT_TOML, shared_file
 from pipeline.config import load_config
 from pipeline.core.math import tiling
 from pipeline.core.math.constants import MOON_RADIUS_M
-from pipeline.core.navigation.navigator import identify_frames
+from pipeline.core.navigation.eskf import NavState
+from pipeline.core.navigation.navigator import Tracker, identify_frames
 from pipeline.core.sensors.rim_sensing import model_sensing
 from pipeline.core.vision import crater_index
 from pipeline.core.vision.index_cache import IndexCache
@@ -37,14 +38,16 @@ CAMERA = {"sensor": "physical", "pixel_sigma_px": 0.3, "bearing": "corrected",
 
 
 def lost_frames(catalogue: dict, window: dict, navigator: Catalogue, seen: Catalogue | None,
-                detection: dict | None = None, epoch_utc: str = "2026-01-30T08:40:00Z"):
-    """identify_frames in lost_in_space mode over `window` with the navigator's catalogue; the
-    world is `seen` (None: the navigator's catalogue)."""
+                detection: dict | None = None, epoch_utc: str = "2026-01-30T08:40:00Z",
+                mode: str = "lost_in_space", start_sigma_m: float | None = None):
+    """identify_frames in `mode` (lost_in_space) over `window` with the navigator's catalogue;
+    the world is `seen` (None: the navigator's catalogue); the filter starts lost, or at the
+    truth with a position 1-sigma of start_sigma_m (m)."""
     cfg = load_config(DEFAULT_TOML, "lis", {
         "catalogue": catalogue, "trajectory": {**window, "epoch_utc": epoch_utc},
         "detection": {**CAMERA, **(detection or {})},
         "estimation": {"catalogue_sigmas": "truth"},
-        "identification": {"mode": "lost_in_space"}})
+        "identification": {"mode": mode}})
     trajectory, _ = simulate_trajectory(cfg.trajectory)
     sensors = simulate_sensors(cfg.trajectory, cfg.imu, cfg.altimeter, cfg.seed,
                                trajectory["t_s"].to_numpy())
@@ -56,9 +59,18 @@ def lost_frames(catalogue: dict, window: dict, navigator: Catalogue, seen: Catal
     sun = ephemeris.sun_mcmf_m(cfg.trajectory.epoch_utc, t)
     sensing = model_sensing(model, cfg.detection.false_detection_share,
                             navigator if seen is None else seen, r_mcmf, dcm_body_from_mcmf, sun)
+    start = None
+    if start_sigma_m is not None:
+        row = trajectory.row(0, named=True)
+        x = NavState(np.array([row[f"r_mci_{a}_m"] for a in "xyz"]),
+                     np.array([row[f"v_mci_{a}_m_s"] for a in "xyz"]),
+                     np.array([row[f"q_mci_from_body_{a}"] for a in "xyzw"]), np.zeros(3),
+                     np.zeros(3))
+        sig = np.r_[[start_sigma_m] * 3, [0.1] * 3, [1e-5] * 3, [1e-7] * 3, [1e-4] * 3]
+        start = Tracker(x, np.diag(sig**2), float(t[0]))
     results = identify_frames(
         model, identify_options(cfg), navigator, sensing, t, trajectory["frame"].to_numpy(),
-        theta, r_mcmf, dcm_body_from_mcmf, sun, None, imu_samples(sensors.imu, nav.imu_rate_hz),
+        theta, r_mcmf, dcm_body_from_mcmf, sun, start, imu_samples(sensors.imu, nav.imu_rate_hz),
         [], np.zeros((t.size, 3)),
         IndexCache(navigator, None, cfg.detection.detect_min_diameter_px), cfg.seed)
     return results, trajectory
@@ -73,6 +85,17 @@ def rotated(cat: Catalogue, angle_rad: float) -> Catalogue:
     tiles = tiling.tile_of(unit, cat.index.order)
     order = np.argsort(tiles, kind="stable")
     return replace(cat, crater_id=cat.crater_id[order], diam_km=cat.diam_km[order],
+                   r_mcmf_m=r[order], index=tiling.TileIndex.build(unit[order], tiles[order],
+                                                                   cat.index.order))
+
+
+def subset(cat: Catalogue, keep: np.ndarray) -> Catalogue:
+    """The catalogue's rows where `keep`, re-indexed."""
+    r = cat.r_mcmf_m[keep]
+    unit = r / np.linalg.norm(r, axis=1, keepdims=True)
+    tiles = tiling.tile_of(unit, cat.index.order)
+    order = np.argsort(tiles, kind="stable")
+    return replace(cat, crater_id=cat.crater_id[keep][order], diam_km=cat.diam_km[keep][order],
                    r_mcmf_m=r[order], index=tiling.TileIndex.build(unit[order], tiles[order],
                                                                    cat.index.order))
 
@@ -100,6 +123,27 @@ def test_a_region_missing_from_the_catalogue_gives_no_fix(small_catalogue: Catal
     assert [r.mode for r in results] == ["lost_in_space"] * 3
     assert not any(r.ok for r in results)
     assert all(r.detections.identified.sum() == 0 for r in results)
+
+
+def test_tracking_with_no_catalogue_crater_in_view_identifies_nothing(
+        small_catalogue: Catalogue, catalogue_db: Path) -> None:
+    """Detections with no catalogue crater near the prior (the navigator's catalogue holds only
+    the far side of the Moon from the lander): every frame a status with nothing identified,
+    never an exception."""
+    window = {"start_s": 1900.0, "end_s": 1902.0}
+    cat = {"synthetic_min_diam_km": 5.0, "db_path": str(catalogue_db)}
+    _, trajectory = lost_frames(cat, window, small_catalogue, None,
+                                {"detect_min_diameter_px": 5.0})
+    r0 = np.array([trajectory.row(0, named=True)[f"r_mcmf_{a}_m"] for a in "xyz"])
+    far = small_catalogue.r_mcmf_m @ r0 < 0.0
+    elsewhere = subset(small_catalogue, far)
+    results, _ = lost_frames(cat, window, elsewhere, small_catalogue,
+                             {"detect_min_diameter_px": 5.0}, mode="tracking",
+                             start_sigma_m=100.0)
+    assert [r.mode for r in results] == ["tracking"] * 3
+    assert not any(r.ok for r in results)
+    assert all(r.detections.identified.sum() == 0 for r in results)
+    assert all(r.detections.matched_row.size > 0 for r in results)  # there were detections
 
 
 def test_robbins_catalogue_fixes_a_high_altitude_frame(tmp_path: Path) -> None:

@@ -162,7 +162,9 @@ def track(meas: sensor.EllipseMeasurement, r_mci_m: np.ndarray, q_mci_from_body:
     cov = matching.ellipse_vector_covariance(meas.semi_major_px, meas.semi_minor_px,
                                              meas.angle_rad, opts.sensor_noise.sigma_px)
     assoc = matching.associate(y, cov, pred, opts.gate_probability)
-    matched = np.where(assoc.candidate >= 0, rows[np.maximum(assoc.candidate, 0)], -1)
+    matched = np.full(assoc.candidate.shape, -1, np.int64)  # no craters in view: none
+    gated = assoc.candidate >= 0
+    matched[gated] = rows[assoc.candidate[gated]]
     return _verify(meas, matched, assoc.confidence, dcm_body_from_mcmf, dcm_mci_from_mcmf,
                    craters, phys, opts, rng)
 
