@@ -158,6 +158,34 @@ def test_an_engine_stronger_than_believed_gives_more_thrust_and_guidance_absorbs
     assert t["fte_m"] < 5.0
 
 
+# a point of this terrain (the 5 km catalogue's) on a crater wall: 26.9 deg over the gear's 4 m
+# span, 240 m south-west of the landing site, with flat ground within 10 m
+STEEP_SITE = {"site_lat_deg": 18.5559980, "site_lon_deg": 61.8051995, "site_search_m": 0.0}
+
+
+@pytest.mark.slow  # two whole flights: `just test-slow` (and CI)
+def test_the_hazard_lidar_moves_a_target_on_a_crater_wall_to_safe_ground(tmp_path, catalogue_db):
+    """Aimed at a crater wall, the lander without the lidar comes down on it and crashes; with
+    it, the scan sees the wall, moves the target to flat ground and it lands."""
+    flights = {}
+    for lidar in (False, True):
+        cfg = fast_landing(f"wall-{lidar}", catalogue_db, flight=STEEP_SITE,
+                           hazard={"enabled": lidar})
+        run_stages(cfg, tmp_path)
+        flights[lidar] = read(RunStore(f"wall-{lidar}", tmp_path), "touchdown").row(0, named=True)
+    blind, seeing = flights[False], flights[True]
+    assert blind["status"] == "crashed" and blind["slope_deg"] > 12.0
+    assert blind["hazard_status"] == "off" and blind["divert_m"] == 0.0
+    assert seeing["status"] == "landed", seeing["reason"]
+    assert seeing["hazard_status"] == "diverted"
+    assert seeing["hazard_slope_before_deg"] > 12.0 and seeing["hazard_slope_deg"] <= 8.0
+    assert 1.0 < seeing["divert_m"] <= 12.0 + 1e-9 and seeing["slope_deg"] <= 12.0
+    # the miss from the planned target holds the divert: miss = FTE - knowledge + divert
+    assert seeing["miss_downrange_m"] == pytest.approx(
+        seeing["fte_downrange_m"] - seeing["knowledge_downrange_m"]
+        + seeing["divert_downrange_m"], abs=1e-6)
+
+
 @pytest.mark.slow  # a whole flight: `just test-slow` (and CI)
 def test_out_of_fuel_is_never_a_landing(tmp_path, catalogue_db):
     # the engine burns 2.5 times the propellant its software books: the tanks run dry
