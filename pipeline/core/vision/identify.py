@@ -166,15 +166,19 @@ def track(meas: sensor.EllipseMeasurement, r_mci_m: np.ndarray, q_mci_from_body:
     gated = assoc.candidate >= 0
     matched[gated] = rows[assoc.candidate[gated]]
     return _verify(meas, matched, assoc.confidence, dcm_body_from_mcmf, dcm_mci_from_mcmf,
-                   craters, phys, opts, rng)
+                   craters, phys, opts, rng, r_mci_m)
 
 
 def _verify(meas: sensor.EllipseMeasurement, matched: np.ndarray, confidence: np.ndarray,
             dcm_body_from_mcmf: np.ndarray, dcm_mci_from_mcmf: np.ndarray, craters: CraterArrays,
-            phys: PhysicalSensor, opts: IdentifyOptions, rng: np.random.Generator) -> Match:
+            phys: PhysicalSensor, opts: IdentifyOptions, rng: np.random.Generator,
+            r_prior_mci_m: np.ndarray) -> Match:
     """The robust pose (RANSAC, chi-square refit; `pipeline.core.estimation.estimators.robust`)
     of the matched detections, at most VERIFY_MAX_CRATERS of them; the matches within its chi-square
-    gate are the identified craters."""
+    gate are the identified craters. The noise model's range terms (shares of the range) are
+    taken at the ranges from the prior position r_prior_mci_m (MCI, m), not at the measured
+    ones, whose own errors would weigh a range measured short above one measured long
+    (`pipeline.ops.estimate`'s reweighted fit)."""
     cam = phys.camera
     n = matched.size
     u_body, rho_size = measure_physical(phys, meas, matched, craters,
@@ -183,8 +187,8 @@ def _verify(meas: sensor.EllipseMeasurement, matched: np.ndarray, confidence: np
     known = matched >= 0
     c_mci = np.where(known[:, None], craters.r_mcmf_m[np.maximum(matched, 0)]
                      @ dcm_mci_from_mcmf.T, np.nan)
-    rho_for_sigma = np.where(np.isfinite(rho_size), rho_size, np.nanmedian(rho_size)
-                             if known.any() else 1.0)
+    rho_prior = np.linalg.norm(c_mci - r_prior_mci_m, axis=1)
+    rho_for_sigma = np.where(known, rho_prior, np.nanmedian(rho_prior) if known.any() else 1.0)
     site = known & (craters.crater_id[np.maximum(matched, 0)] >= SITE_TIER_ID_BASE)
     sigma_b, sigma_r = measurement_sigmas(opts.sensor_noise, rho_for_sigma, meas.semi_major_px,
                                           None, site)
