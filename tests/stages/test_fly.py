@@ -244,6 +244,10 @@ def test_a_contact_after_the_tanks_ran_dry_is_out_of_fuel_whatever_its_speed():
     ({"flight": {"throttle_range": [0.8, 0.5]}}, None, "flight.throttle_range"),
     ({"flight": {"guidance_rate_hz": 7.0}}, None, "flight.guidance_rate_hz"),
     ({"trajectory": {"frame_rate_hz": 3.0}}, None, "trajectory.frame_rate_hz"),
+    ({"hazard": {"divert_m": -1.0}}, None, "hazard.divert_m"),
+    ({"hazard": {"max_range_m": 10.0}}, None, "hazard.max_range_m"),  # below the scan altitude
+    ({"hazard": {"beams": 4}}, None, "hazard.beams"),
+    ({"hazard": {"min_coverage": 0.0}}, None, "hazard.min_coverage"),
     ({"identification": {"mode": "tracking"},
       "detection": {"sensor": "paper", "camera_mounting_deg": [0.0, 0.0, 0.0],
                     "bearing": "ellipse_centre", "range_source": "per_crater"}}, None,
