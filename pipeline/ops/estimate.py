@@ -21,6 +21,7 @@ from pipeline.core.estimation.estimators import (
     RobustOptions,
     estimate_pose,
 )
+from pipeline.core.estimation.measurement import per_crater
 from pipeline.core.math.streams import stream
 from pipeline.core.sensors.rim_sensor import SensorNoise, measurement_sigmas
 from pipeline.io.tables import quat_columns, xyz, xyz_columns
@@ -142,17 +143,13 @@ def _reweighed(method: str, est: PoseEstimate, craters: UsedCraters, a: int, b: 
     sigma_b, sigma_r = craters.sigmas(a, b, (opts.sigma_bearing, opts.sigma_range_m),
                                       opts.sensor_noise, rho_ref_m=rho_pred)
     again = estimate_pose(method, craters.c_mci_m[a:b][use], craters.u_body[a:b][use],
-                          craters.rho_m[a:b][use], sigma_bearing=_rows(sigma_b, use),
-                          sigma_range_m=_rows(sigma_r, use), r_prior_mci_m=est.r_mci_m,
+                          craters.rho_m[a:b][use], sigma_bearing=per_crater(sigma_b, use),
+                          sigma_range_m=per_crater(sigma_r, use), r_prior_mci_m=est.r_mci_m,
                           step_tol_m=opts.step_tol_m, max_iterations=opts.max_iterations,
                           checks=opts.checks)
     inliers = np.zeros(b - a, bool)
     inliers[np.flatnonzero(use)[again.inliers]] = True
     return replace(again, inliers=inliers, iterations=est.iterations + again.iterations)
-
-
-def _rows(sigma: float | np.ndarray, use: np.ndarray) -> float | np.ndarray:
-    return sigma if np.ndim(sigma) == 0 else np.asarray(sigma)[use]
 
 
 def _row(frame: int, t_s: float, method: str, est: PoseEstimate, solve_ms: float,

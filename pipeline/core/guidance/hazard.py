@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from pipeline.core.sensors.conics import tangent_basis
+
 HAZARD_STATUSES = ("off", "not_scanned", "kept", "diverted", "no_safe_site")
 """A flight's hazard avoidance: no lidar; the scan altitude never reached; the target already
 safe (kept); a new target; no safe node within reach (the target kept)."""
@@ -77,11 +79,9 @@ class SafeSite:
 
 
 def tangent_axes(r_mcmf_m: np.ndarray) -> np.ndarray:
-    """Rows east, north, up (MCMF) at the point r_mcmf_m (m; not at a pole)."""
+    """Rows east, north, up (MCMF) at the point r_mcmf_m (m): `conics.tangent_basis`."""
     up = r_mcmf_m / np.linalg.norm(r_mcmf_m)
-    east = np.cross([0.0, 0.0, 1.0], up)
-    east /= np.linalg.norm(east)
-    return np.array([east, np.cross(up, east), up])
+    return np.array([*tangent_basis(up), up])
 
 
 def slope_map_deg(en_m: np.ndarray, up_m: np.ndarray, half_m: float, step_m: float,
