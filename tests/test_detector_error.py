@@ -9,6 +9,61 @@ import pytest
 from pipeline.ops import detector_error
 
 
+def sightings(rng: np.random.Generator, craters: int, k: int, centre_white: tuple[float, float],
+              centre_persistent: tuple[float, float], axis_white: tuple[float, float],
+              axis_persistent: tuple[float, float]) -> pl.DataFrame:
+    """A detections table: `craters` craters of 10-120 px each detected in k frames, with errors
+    of the given (s0, k) laws: per-axis white centre errors, a persistent centre error fixed per
+    crater, independent white errors on each semi-axis and a persistent one shared by both."""
+    def law(c: tuple[float, float], d: np.ndarray) -> np.ndarray:
+        return np.hypot(c[0], c[1] * d)
+
+    d = np.exp(rng.uniform(np.log(10), np.log(120), craters))
+    dd = np.repeat(d, k)
+    ids = np.repeat(np.arange(craters), k)
+    cp = np.repeat(rng.standard_normal((craters, 2)) * law(centre_persistent, d)[:, None], k, 0)
+    cw = rng.standard_normal((craters * k, 2)) * law(centre_white, dd)[:, None]
+    ap = np.repeat(rng.standard_normal(craters) * law(axis_persistent, d), k)
+    aw = rng.standard_normal((craters * k, 2)) * law(axis_white, dd)[:, None]
+    u, v = rng.uniform(0, 1024, (2, craters * k))
+    a_t = dd / 2
+    b_t = 0.9 * a_t
+    return pl.DataFrame({"crater_id": ids, "true_ellipse_u_px": u, "true_ellipse_v_px": v,
+                         "true_semi_major_px": a_t, "true_semi_minor_px": b_t,
+                         "ellipse_u_px": u + cp[:, 0] + cw[:, 0],
+                         "ellipse_v_px": v + cp[:, 1] + cw[:, 1],
+                         "semi_major_px": a_t + ap + aw[:, 0],
+                         "semi_minor_px": b_t + ap + aw[:, 1]})
+
+
+def test_split_recovers_white_and_persistent_errors() -> None:
+    """Errors that repeat in every sighting of a crater are told from fresh ones: the laws used
+    to draw them come back, and the navigator's PixelErrors carry them."""
+    rng = np.random.default_rng(11)
+    truth_laws = {"centre_white": (0.12, 0.004), "centre_persistent": (0.2, 0.008),
+                  "axis_white": (0.15, 0.003), "axis_persistent": (0.1, 0.006)}
+    dets = sightings(rng, 3000, 30, *truth_laws.values())
+    sp = detector_error.split(dets)
+    for key, (s0, k) in truth_laws.items():
+        for d in (12.0, 40.0, 100.0):
+            fitted = np.hypot(sp[key][0], sp[key][1] * d)
+            assert fitted == pytest.approx(np.hypot(s0, k * d), rel=0.12), (key, d)
+    pix = detector_error.pixel_errors({"split": sp})
+    assert pix.centre_persistent_px(40.0) == pytest.approx(np.hypot(0.2, 0.32), rel=0.12)
+    # a detector without persistent errors is calibrated as such
+    white_only = detector_error.split(sightings(rng, 2000, 20, (0.2, 0.0), (0.0, 0.0),
+                                                (0.2, 0.0), (0.0, 0.0)))
+    assert np.hypot(*white_only["centre_persistent"]) < 0.03
+    assert np.hypot(*white_only["centre_white"]) == pytest.approx(0.2, rel=0.05)
+
+
+def test_pixel_errors_refuse_an_uncalibrated_split(tmp_path) -> None:
+    bad = tmp_path / "detector_error.json"
+    bad.write_text('{"split": {"centre_white": [NaN, NaN]}}')
+    with pytest.raises(detector_error.StageInputError, match=r"detector_error\.json"):
+        detector_error.read_pixel_errors(bad)
+
+
 def test_calibration_recovers_a_known_centre_sigma_law() -> None:
     rng = np.random.default_rng(3)
     n = 20_000
@@ -19,7 +74,8 @@ def test_calibration_recovers_a_known_centre_sigma_law() -> None:
     size = 0.01 + 0.02 * rng.standard_normal(n)
     truth = pl.DataFrame({"apparent_diam_px": d, "incidence_deg": inc, "detected": True,
                           "centre_error_px": err, "diameter_error_share": size})
-    dets = pl.DataFrame({"crater_id": np.r_[np.zeros(n, int), -np.ones(500, int)]})
+    dets = sightings(rng, 400, 50, (0.1, 0.0), (0.2, 0.0), (0.1, 0.0), (0.1, 0.0))
+    dets = pl.concat([dets, dets.head(500).with_columns(crater_id=pl.lit(-1, pl.Int64))])
     m = detector_error.calibrate(truth, dets, n_images=100)
     assert m["centre_sigma_s0_px"] == pytest.approx(0.15, rel=0.25)
     assert m["centre_sigma_k"] == pytest.approx(0.004, rel=0.15)

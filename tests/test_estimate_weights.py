@@ -10,7 +10,7 @@ import numpy as np
 
 from pipeline.core.estimation.estimators import DEFAULT_CHECKS, estimate_pose
 from pipeline.core.math.constants import MOON_RADIUS_M
-from pipeline.core.sensors.rim_sensor import CatalogueErrors, SensorNoise
+from pipeline.core.sensors.rim_sensor import CatalogueErrors, PixelErrors, SensorNoise
 from pipeline.ops.estimate import EstimateOptions, UsedCraters, estimate_all
 
 N_CRATERS, N_FRAMES, SHARE, SIGMA_PX, F_PX = 1_500, 60, 0.05, 0.3, 1_000.0
@@ -50,8 +50,8 @@ def _frames(seed: int = 0):
     return craters, r_true
 
 
-NOISE = SensorNoise(sigma_px=SIGMA_PX, f_px=F_PX, range_source="apparent_size", sigma_range_m=0.0,
-                    catalogue=CatalogueErrors(0.0, 0.0, SHARE))
+NOISE = SensorNoise(pixel=PixelErrors.fixed(SIGMA_PX), f_px=F_PX, range_source="apparent_size",
+                    sigma_range_m=0.0, catalogue=CatalogueErrors(0.0, 0.0, SHARE))
 
 
 def _nees(r: np.ndarray, cov: np.ndarray, r_true: np.ndarray) -> float:

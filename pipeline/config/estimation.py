@@ -15,6 +15,8 @@ from pipeline.config.checks import (
 from pipeline.config.detection import CATALOGUE_SIGMAS
 from pipeline.vocab import METHODS
 
+PIXEL_ERRORS = ("assumed", "calibrated")
+
 
 @dataclass(frozen=True)
 class EstimationConfig:
@@ -34,6 +36,10 @@ class EstimationConfig:
     max_condition: float  # largest accepted (Jacobi-scaled) condition number of the geometry
     # physical sensor: the ellipse noise the navigator assumes; None ("truth"): the detection's
     assumed_pixel_sigma_px: float | None = field(metadata=_TRUTH)
+    # physical sensor: the ellipse errors the navigator weighs detections by; "assumed": white
+    # noise of assumed_pixel_sigma_px; "calibrated": the render stage's calibration of the
+    # detector on its rendered truth (white and persistent, by apparent size; pixels only)
+    pixel_errors: str
     catalogue_sigmas: str  # ignore | truth: inflate each crater's noise by the catalogue errors
     # physical sensor: the camera mounting the navigator assumes (body-from-camera, 3-2-1 Euler
     # z, y, x, deg); None ("truth"): detection.camera_mounting_deg (a perfect calibration)
@@ -64,6 +70,8 @@ class EstimationConfig:
         if self.assumed_pixel_sigma_px is not None:
             _num(self.assumed_pixel_sigma_px, k + "assumed_pixel_sigma_px", 1e-4, 100.0,
                  unit="px", why='or "truth"')
+        _check(self.pixel_errors in PIXEL_ERRORS, k + "pixel_errors",
+               f"= {self.pixel_errors!r}: must be one of {PIXEL_ERRORS}")
         _check(self.catalogue_sigmas in CATALOGUE_SIGMAS, k + "catalogue_sigmas",
                f"= {self.catalogue_sigmas!r}: must be one of {CATALOGUE_SIGMAS}")
         if self.assumed_camera_mounting_deg is not None:

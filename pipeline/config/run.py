@@ -84,6 +84,9 @@ class RunConfig:
             _check(self.identification.mode != "simulated", "detection.source",
                    "= \"pixels\" needs identification by algorithm (identification.mode): "
                    "the coin flip cannot name the crater of a detection from pixels")
+        _check(self.estimation.pixel_errors == "assumed" or self.detection.source == "pixels",
+               "estimation.pixel_errors", "= \"calibrated\" needs detection.source = "
+               "\"pixels\" (a detector calibrated on its rendered truth)")
         _check(not (self.identification.mode == "tracking" and n.init == "first_fix"),
                "identification.mode", "= \"tracking\" needs a filter to predict from the start "
                "(navigation.init = \"dispersed\"); with navigation.init = \"first_fix\" use "
@@ -177,27 +180,36 @@ class RunConfig:
         a = self.altimeter
         return a.sigma_m + a.sigma_share * rho_m if assumed is None else assumed
 
-    def sensor_noise(self, navigator: bool) -> sensor.SensorNoise | None:
+    def sensor_noise(self, navigator: bool, calibrated: sensor.PixelErrors | None = None
+                     ) -> sensor.SensorNoise | None:
         """The physical sensor's noise (None for the paper's sensor): as the navigator assumes it
-        (its assumed pixel noise and range noise, and the catalogue's errors when it weighs
-        them), or the truth's measurement noise (the bound's: the catalogue's errors are the
-        world's, not noise, and the bound is computed at the world's craters)."""
+        (its assumed pixel errors, or the detector's `calibrated` ones with
+        estimation.pixel_errors = "calibrated"; its range noise, and the catalogue's errors when
+        it weighs them), or the truth's measurement noise (the bound's: the catalogue's errors
+        are the world's, not noise, and the bound is computed at the world's craters)."""
         d = self.detection
         if d.sensor != "physical":
             return None
         none = sensor.CatalogueErrors(0.0, 0.0, 0.0)
         if not navigator:
-            return sensor.SensorNoise(d.pixel_sigma_px, d.pixel_camera().fx_px, d.range_source,
-                                      d.sigma_range_m, none)
+            return sensor.SensorNoise(sensor.PixelErrors.fixed(d.pixel_sigma_px),
+                                      d.pixel_camera().fx_px, d.range_source, d.sigma_range_m,
+                                      none)
         e = self.estimation
-        sigma_px = (d.pixel_sigma_px if e.assumed_pixel_sigma_px is None
-                    else e.assumed_pixel_sigma_px)
+        if e.pixel_errors == "calibrated":
+            if calibrated is None:
+                raise ValueError("estimation.pixel_errors = \"calibrated\" needs the render "
+                                 "stage's detector_error.json")
+            pixel = calibrated
+        else:
+            pixel = sensor.PixelErrors.fixed(d.pixel_sigma_px if e.assumed_pixel_sigma_px is None
+                                             else e.assumed_pixel_sigma_px)
         catalogue = (sensor.CatalogueErrors(d.catalogue_sigma_horizontal_m,
                                             d.catalogue_sigma_height_m,
                                             d.catalogue_sigma_diameter_share,
                                             site_relative_m=d.site_map_relative_sigma_m)
                      if e.catalogue_sigmas == "truth" else none)
-        return sensor.SensorNoise(sigma_px, d.pixel_camera().fx_px, d.range_source,
+        return sensor.SensorNoise(pixel, d.pixel_camera().fx_px, d.range_source,
                                   self.navigator_sigmas()[1], catalogue)
 
     def navigator_misalignment(self) -> np.ndarray | None:

@@ -10,23 +10,123 @@ and its detections table (`crater_id` < 0: false):
   a few gross errors do not inflate it; then sigma(D) = sqrt(s0^2 + (k D)^2) fitted to the bins
   (weighted least squares on sigma^2, s0, k >= 0), and the same per incidence bin as a factor;
 - size: the median (bias) and robust sigma (1.4826 MAD) of the relative diameter error per bin;
-- false detections: per image, and as a share of the detections.
-The navigator's pixel noise (today a fixed `detection.pixel_sigma_px`) can then be
-sigma(D, incidence) instead.
+- false detections: per image, and as a share of the detections;
+- white and persistent (`split`, from the detections matched to a true rim): the same crater
+  seen frame after frame keeps most of its error (its rim, light and terrain change little), so
+  each signed error (centre u, v; the mean semi-axis (a + b) / 2) is split, per apparent-size
+  bin, into the crater's mean over its sightings (persistent: its variance is the spread of the
+  crater means less the white share of a mean of K) and the deviations from it (white: pooled
+  over the craters seen at least twice), gross errors (beyond 5 robust sigmas) left out; each
+  fitted as sqrt(s0^2 + (k D)^2). `pixel_errors` gives them to the navigator
+  (`rim_sensor.PixelErrors`, estimation.pixel_errors = "calibrated"), which counts the
+  persistent part once per crater however often it sees it.
 """
 
 from __future__ import annotations
 
+import json
 from itertools import pairwise
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import polars as pl
 
+from pipeline.core.sensors.rim_sensor import PixelErrors
+from pipeline.errors import StageInputError
+
 RAYLEIGH_MEDIAN = float(np.sqrt(2 * np.log(2)))  # median of |e| / sigma for a 2-D Gaussian
 SIZE_EDGES_PX = (10.0, 15.0, 20.0, 30.0, 50.0, 100.0, np.inf)
 INCIDENCE_EDGES_DEG = (0.0, 50.0, 65.0, 80.0, 90.0)
 MIN_ROWS = 20
+SPLIT_EDGES_PX = (0.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0, np.inf)
+GROSS_SIGMAS = 5.0  # errors beyond this many robust sigmas are a wrong fit, not noise
+SPLIT_KEYS = ("centre_white", "centre_persistent", "axis_white", "axis_persistent")
+
+
+def _fit_s0_k(diam_px: np.ndarray, sigma_px: np.ndarray, n: np.ndarray) -> tuple[float, float]:
+    """(s0, k) of sigma(D) = sqrt(s0^2 + (k D)^2) by weighted least squares on sigma^2 (weights
+    n), s0, k >= 0; NaN with fewer than two points; a single level (k = 0) when they agree."""
+    if diam_px.size < 2:
+        return float("nan"), float("nan")
+    sw = np.sqrt(n.astype(float))
+    a = np.stack([np.ones_like(diam_px), diam_px * diam_px], -1) * sw[:, None]
+    coef, *_ = np.linalg.lstsq(a, sigma_px ** 2 * sw, rcond=None)
+    coef = np.maximum(coef, 0.0)
+    return float(np.sqrt(coef[0])), float(np.sqrt(coef[1]))
+
+
+def _white_persistent(err: np.ndarray, crater: np.ndarray) -> tuple[float, float, int]:
+    """Per-axis white and persistent 1-sigma of signed errors err (n, m) (m axes pooled) of the
+    craters `crater` (n,), and the number of craters seen at least twice."""
+    ids, inv, k = np.unique(crater, return_inverse=True, return_counts=True)
+    mean = np.stack([np.bincount(inv, err[:, j], ids.size) / k for j in range(err.shape[1])],
+                    -1)
+    rep = k >= 2
+    dev = err - mean[inv]
+    dof = float(np.sum(k[rep] - 1)) * err.shape[1]
+    if dof <= 0:
+        return float("nan"), float("nan"), 0
+    white2 = float(np.sum(dev[rep[inv]] ** 2)) / dof
+    pers2 = float(np.mean(mean[rep] ** 2 - white2 / k[rep, None]))
+    return float(np.sqrt(white2)), float(np.sqrt(max(pers2, 0.0))), int(rep.sum())
+
+
+def split(detections: pl.DataFrame) -> dict:
+    """The white and persistent errors of the matched detections (module docstring), per bin
+    and fitted: {"bins": [...], "centre_white": [s0, k], ...} (axis: the mean semi-axis, white
+    per axis as if the two axes erred independently, persistent as one)."""
+    m = detections.filter(pl.col("crater_id") >= 0)
+    diam = 2 * m["true_semi_major_px"].to_numpy()
+    crater = m["crater_id"].to_numpy()
+    e_c = np.stack([m["ellipse_u_px"].to_numpy() - m["true_ellipse_u_px"].to_numpy(),
+                    m["ellipse_v_px"].to_numpy() - m["true_ellipse_v_px"].to_numpy()], -1)
+    e_a = 0.5 * (m["semi_major_px"].to_numpy() + m["semi_minor_px"].to_numpy()
+                 - m["true_semi_major_px"].to_numpy() - m["true_semi_minor_px"].to_numpy())
+    bins: list[dict[str, Any]] = []
+    for lo, hi in pairwise(SPLIT_EDGES_PX):
+        sel = (diam >= lo) & (diam < hi)
+        row: dict[str, Any] = {"diam_lo_px": lo, "diam_hi_px": None if np.isinf(hi) else hi,
+                               "n": int(sel.sum())}
+        if sel.sum() >= MIN_ROWS:
+            ec, ea = e_c[sel], e_a[sel][:, None]
+            keep = ((np.abs(ec - np.median(ec, 0)) <= GROSS_SIGMAS * np.maximum(
+                        [_robust_sigma(ec[:, 0]), _robust_sigma(ec[:, 1])], 1e-6)).all(1)
+                    & (np.abs(ea[:, 0] - np.median(ea)) <= GROSS_SIGMAS
+                       * max(_robust_sigma(ea[:, 0]), 1e-6)))
+            cw, cp, nc = _white_persistent(ec[keep], crater[sel][keep])
+            aw, ap, _ = _white_persistent(ea[keep], crater[sel][keep])
+            row.update({"diam_median_px": float(np.median(diam[sel])), "craters": nc,
+                        "gross_share": float(1 - keep.mean()), "centre_white": cw,
+                        "centre_persistent": cp, "axis_white": float(np.sqrt(2) * aw),
+                        "axis_persistent": ap})
+        bins.append(row)
+    use = [b for b in bins if "centre_white" in b and b["craters"] >= MIN_ROWS
+           and np.isfinite(b["centre_white"])]
+    dm = np.array([b["diam_median_px"] for b in use])
+    n = np.array([b["n"] for b in use])
+    fits = {key: list(_fit_s0_k(dm, np.array([b[key] for b in use]), n)) for key in SPLIT_KEYS}
+    return {"bins": bins, **fits}
+
+
+def pixel_errors(model: dict) -> PixelErrors:
+    """The navigator's pixel errors from a calibration (`calibrate`'s JSON, its `split`)."""
+    sp = model["split"]
+    coef = {k: (float(sp[k][0]), float(sp[k][1])) for k in SPLIT_KEYS}
+    for key, (s0, k) in coef.items():
+        if not (np.isfinite(s0) and np.isfinite(k)):
+            raise ValueError(f"split.{key} is not calibrated (too few craters seen twice)")
+    return PixelErrors(coef["centre_white"], coef["centre_persistent"], coef["axis_white"],
+                       coef["axis_persistent"])
+
+
+def read_pixel_errors(path: Path) -> PixelErrors:
+    """`pixel_errors` of a detector_error.json; a bad file is one line naming it and the key."""
+    try:
+        return pixel_errors(json.loads(Path(path).read_text()))
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+        raise StageInputError(f"{path}: no usable pixel-error calibration "
+                              f"({type(exc).__name__}: {exc})") from None
 
 
 def _robust_sigma(x: np.ndarray) -> float:
@@ -77,6 +177,7 @@ def calibrate(truth: pl.DataFrame, detections: pl.DataFrame, n_images: int) -> d
         "incidence_bins": incidence, "n_detected": int(hit.height),
         "false_per_image": n_false / n_images if n_images else float("nan"),
         "false_share": n_false / detections.height if detections.height else float("nan"),
+        "split": split(detections),
     }
 
 

@@ -13,6 +13,7 @@ import polars as pl
 from pipeline.config import RunConfig
 from pipeline.core.estimation.estimators import RobustOptions
 from pipeline.core.navigation.eskf import BA, BG, N_STATES, VEL
+from pipeline.core.sensors.rim_sensor import PixelErrors
 from pipeline.core.vision.identify import IdentifyOptions
 from pipeline.core.vision.index_cache import IndexCache
 from pipeline.engine.progress import progress_bar
@@ -25,6 +26,7 @@ from pipeline.io.pair_index import PairIndexStore
 from pipeline.io.tables import reduced
 from pipeline.ops.detect import detect_all, model_of
 from pipeline.ops.identify import identify_all
+from pipeline.stages.estimate import calibrated_pixel_errors, calibration_input
 from pipeline.stages.estimate import options as estimate_options
 from pipeline.stages.navigate import options as navigate_options
 from pipeline.viz.draw.detect import record_detect
@@ -38,7 +40,8 @@ def optional_inputs(cfg: RunConfig) -> tuple[str, ...]:
     when identification runs the navigation filter, the detections in the rendered images when
     they are the source."""
     imu = IMU_INPUTS if cfg.identification.mode != "simulated" else ()
-    return imu + (("pixel_detections.parquet",) if cfg.detection.source == "pixels" else ())
+    return (imu + (("pixel_detections.parquet",) if cfg.detection.source == "pixels" else ())
+            + calibration_input(cfg))
 
 
 def identification_navigator(cfg: RunConfig) -> tuple[str, ...]:
@@ -50,13 +53,14 @@ def identification_navigator(cfg: RunConfig) -> tuple[str, ...]:
     return ("navigation", "imu", "altimeter", "estimation")
 
 
-def identify_options(cfg: RunConfig) -> IdentifyOptions:
-    """Identification's options of a run: its config, the navigator's assumed sensor noise, the
-    verifying pose's RANSAC and checks (config `estimation`) and the navigator's filter."""
-    i, n = cfg.identification, navigate_options(cfg)
-    noise = cfg.sensor_noise(navigator=True)
+def identify_options(cfg: RunConfig, calibrated: PixelErrors | None = None) -> IdentifyOptions:
+    """Identification's options of a run: its config, the navigator's assumed sensor noise
+    (`calibrated`: the detector's pixel errors, when it weighs by them), the verifying pose's
+    RANSAC and checks (config `estimation`) and the navigator's filter."""
+    i, n = cfg.identification, navigate_options(cfg, calibrated)
+    noise = cfg.sensor_noise(navigator=True, calibrated=calibrated)
     assert noise is not None  # identification needs the physical sensor (config checks it)
-    est = estimate_options(cfg)
+    est = estimate_options(cfg, calibrated)
     e = cfg.estimation
     sigma = np.zeros(N_STATES)  # a fix gives the pose; the rest as the filter's start
     sigma[VEL] = n.init_sigma_velocity_m_s
@@ -102,10 +106,12 @@ def run(ctx: StageContext) -> StageResult:
     else:
         assert sun is not None  # the config asks for an epoch with the physical sensor
         indexes = lost_in_space_indexes(cfg, craters)
+        calibrated = calibrated_pixel_errors(ctx)
         with progress_bar(f"detecting and identifying craters ({ident.mode})",
                           trajectory.height) as advance:
             detections, frames_table = identify_all(
-                model, identify_options(cfg), navigate_options(cfg), craters, trajectory, sun,
+                model, identify_options(cfg, calibrated), navigate_options(cfg, calibrated),
+                craters, trajectory, sun,
                 pl.read_parquet(ctx.input("imu.parquet")),
                 pl.read_parquet(ctx.input("imu_truth.parquet")),
                 pl.read_parquet(ctx.input("altimeter.parquet")), indexes, cfg.seed, advance,
@@ -140,7 +146,7 @@ STAGE = Stage(
     reads=("detection", "identification", "trajectory.epoch_utc", "seed"),
     reads_when=identification_navigator,
     inputs=("catalogue.json", "trajectory.parquet"),
-    optional_inputs=(*IMU_INPUTS, "pixel_detections.parquet"),
+    optional_inputs=(*IMU_INPUTS, "pixel_detections.parquet", "detector_error.json"),
     uses_optional=optional_inputs,
     outputs=("detections.parquet", "frames.parquet"),
     code=("pipeline.stages.detect",),

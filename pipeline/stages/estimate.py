@@ -11,18 +11,35 @@ from pipeline.config import RunConfig
 from pipeline.core.estimation.estimators import CheckOptions, RobustOptions
 from pipeline.core.estimation.estimators.checks import ML_STEPS
 from pipeline.core.math.constants import MOON_RADIUS_M
+from pipeline.core.sensors.rim_sensor import PixelErrors
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.io.tables import reduced
+from pipeline.ops import detector_error
 from pipeline.ops.estimate import EstimateOptions, UsedCraters, estimate_all
 from pipeline.viz.draw.estimate import record_estimate
 
 
-def options(cfg: RunConfig) -> EstimateOptions:
-    """The navigator's options of a run."""
+def calibration_input(cfg: RunConfig) -> tuple[str, ...]:
+    """The render stage's detector calibration, for the navigator's stages, when they weigh the
+    detections by it (estimation.pixel_errors = "calibrated")."""
+    return ("detector_error.json",) if cfg.estimation.pixel_errors == "calibrated" else ()
+
+
+def calibrated_pixel_errors(ctx: StageContext) -> PixelErrors | None:
+    """The detector's calibrated pixel errors (`detector_error.pixel_errors`) when the run's
+    navigator weighs by them, else None."""
+    if not calibration_input(ctx.cfg):
+        return None
+    return detector_error.read_pixel_errors(ctx.input("detector_error.json"))
+
+
+def options(cfg: RunConfig, calibrated: PixelErrors | None = None) -> EstimateOptions:
+    """The navigator's options of a run (`calibrated`: the detector's pixel errors, when it
+    weighs by them)."""
     e, d = cfg.estimation, cfg.detection
     sigma_bearing, sigma_range_m = cfg.navigator_sigmas()
-    noise = cfg.sensor_noise(navigator=True)
+    noise = cfg.sensor_noise(navigator=True, calibrated=calibrated)
     robust = (RobustOptions(e.gate_probability, e.ransac_max_hypotheses, e.ransac_confidence)
               if e.robust else None)
     return EstimateOptions(
@@ -42,7 +59,8 @@ def run(ctx: StageContext) -> StageResult:
     craters = UsedCraters.from_tables(detections, frames_table, cfg.navigator_misalignment())
     total = craters.frame.size * len(cfg.estimation.methods)
     with progress_bar("estimating poses", total) as advance:
-        estimates = estimate_all(craters, options(cfg), cfg.seed, advance)
+        estimates = estimate_all(craters, options(cfg, calibrated_pixel_errors(ctx)), cfg.seed,
+                                 advance)
     tx.table("estimates", estimates)
     lines = []
     for method in cfg.estimation.methods:
@@ -70,6 +88,8 @@ STAGE = Stage(
            "detection.camera_mounting_deg", "detection.distortion",
            "detection.site_map_relative_sigma_m", "seed"),
     inputs=("detections.parquet", "frames.parquet", "trajectory.parquet"),
+    optional_inputs=("detector_error.json",),
+    uses_optional=calibration_input,
     outputs=("estimates.parquet",),
     code=("pipeline.stages.estimate",),
     run=run,

@@ -15,14 +15,17 @@ import polars as pl
 
 from pipeline.config import RunConfig
 from pipeline.core.navigation.filter import FilterOptions
+from pipeline.core.sensors.rim_sensor import PixelErrors
 from pipeline.engine.stage import Stage, StageContext, StageResult
 from pipeline.ops.estimate import UsedCraters
 from pipeline.ops.navigate import NavigateOptions, navigate, process_noise
+from pipeline.stages.estimate import calibrated_pixel_errors, calibration_input
 from pipeline.viz.draw.navigate import record_navigate
 
 
-def options(cfg: RunConfig) -> NavigateOptions:
-    """The navigator's options of a run."""
+def options(cfg: RunConfig, calibrated: PixelErrors | None = None) -> NavigateOptions:
+    """The navigator's options of a run (`calibrated`: the detector's pixel errors, when it
+    weighs by them)."""
     n = cfg.navigation
     sigma_bearing, sigma_range_m = cfg.navigator_sigmas()
     assumed_imu = cfg.navigator_imu()
@@ -37,7 +40,8 @@ def options(cfg: RunConfig) -> NavigateOptions:
         init_sigma_position_m=n.init_sigma_position_m,
         init_sigma_velocity_m_s=n.init_sigma_velocity_m_s,
         init_sigma_attitude_rad=float(np.radians(n.init_sigma_attitude_deg)),
-        outage_s=outage, sensor_noise=cfg.sensor_noise(navigator=True), imu=assumed_imu,
+        outage_s=outage, sensor_noise=cfg.sensor_noise(navigator=True, calibrated=calibrated),
+        imu=assumed_imu,
         altimeter_sigma=altimeter_sigma,
         consistency_probability=cfg.estimation.consistency_probability,
         imu_rate_hz=cfg.imu.rate_hz,
@@ -56,7 +60,7 @@ def run(ctx: StageContext) -> StageResult:
     frame_of_time = {float(t): int(f) for t, f in
                      zip(trajectory["t_s"].to_list(), trajectory["frame"].to_list(), strict=True)}
     table, facts = navigate(
-        options(cfg), pl.read_parquet(ctx.input("imu.parquet")),
+        options(cfg, calibrated_pixel_errors(ctx)), pl.read_parquet(ctx.input("imu.parquet")),
         pl.read_parquet(ctx.input("imu_truth.parquet")), craters,
         pl.read_parquet(ctx.input("estimates.parquet")),
         pl.read_parquet(ctx.input("altimeter.parquet")), frame_of_time, cfg.seed)
@@ -91,6 +95,8 @@ STAGE = Stage(
            "detection", "seed"),
     inputs=("trajectory.parquet", "imu.parquet", "imu_truth.parquet", "altimeter.parquet",
             "detections.parquet", "frames.parquet", "estimates.parquet"),
+    optional_inputs=("detector_error.json",),
+    uses_optional=calibration_input,
     outputs=("navigation.parquet", "navigation.json"),
     code=("pipeline.stages.navigate",),
     run=run,

@@ -43,6 +43,7 @@ class CraterNet(nn.Module):
         self.d2 = _cbr(c[2] + c[1], c[1])
         self.head = nn.Conv2d(c[1], len(OUTPUTS), 1)
         self.up = nn.Upsample(scale_factor=2, mode="nearest")
+        assert self.head.bias is not None
         with torch.no_grad():  # start from a low prior of a crater per cell (CenterNet)
             self.head.bias.copy_(torch.tensor([-4.0, 1.5, 0.0, 0.0]))
 

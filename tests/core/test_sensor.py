@@ -497,7 +497,8 @@ def test_measurement_sigmas_per_range_source() -> None:
     a = np.array([8.0, 25.0, 60.0])
     cat = sensor.CatalogueErrors(100.0, 50.0, 0.05)
     f = 724.0
-    noise = sensor.SensorNoise(sigma_px=0.3, f_px=f, range_source="per_crater",
+    noise = sensor.SensorNoise(pixel=sensor.PixelErrors.fixed(0.3), f_px=f,
+                               range_source="per_crater",
                                sigma_range_m=10.0, catalogue=NO_ERRORS)
     s_b, s_r = sensor.measurement_sigmas(noise, rho, a)
     assert s_b.shape == s_r.shape == (3,)
@@ -523,6 +524,34 @@ def test_measurement_sigmas_per_range_source() -> None:
                                          rho, a)
     np.testing.assert_array_equal(s_r, 1.0)  # no ranges: a placeholder, unused
     np.testing.assert_allclose(s_b, np.sqrt((0.3 / f) ** 2 + (100.0 / rho) ** 2), rtol=1e-14)
+
+
+def test_persistent_pixel_errors_count_once_per_crater() -> None:
+    """A detector's persistent errors (the same in every sighting of a crater) join the
+    catalogue's in the part that grows with the sightings K; its white ones do not; the fixed
+    model is today's white noise exactly."""
+    rho = np.array([2.0e5, 1.5e5])
+    a = np.array([6.0, 20.0])
+    f = 724.0
+    cat = sensor.CatalogueErrors(100.0, 50.0, 0.05)
+    pix = sensor.PixelErrors(centre_white=(0.1, 0.0), centre_persistent=(0.2, 0.01),
+                             axis_white=(0.15, 0.0), axis_persistent=(0.1, 0.0))
+    noise = sensor.SensorNoise(pixel=pix, f_px=f, range_source="apparent_size",
+                               sigma_range_m=0.0, catalogue=cat)
+    k = np.array([1.0, 4.0])
+    s_b, s_r = sensor.measurement_sigmas(noise, rho, a, sightings=k)
+    cp = np.hypot(0.2, 0.01 * 2 * a)
+    np.testing.assert_allclose(s_b**2, (0.1 / f) ** 2 + k * ((cp / f) ** 2 + (100.0 / rho) ** 2),
+                               rtol=1e-12)
+    white_r = rho * 0.15 / (np.sqrt(2.0) * a)
+    np.testing.assert_allclose(s_r**2, white_r**2 + k * ((rho * 0.1 / a) ** 2 + 50.0**2
+                                                         + (rho * 0.05) ** 2), rtol=1e-12)
+    fixed = replace(noise, pixel=sensor.PixelErrors.fixed(0.3))
+    s_b0, s_r0 = sensor.measurement_sigmas(fixed, rho, a, sightings=k)
+    np.testing.assert_array_equal(s_b0, np.hypot(0.3 / f, np.sqrt(k) * 100.0 / rho))
+    np.testing.assert_array_equal(
+        s_r0, np.hypot(sensor.apparent_size_range_sigma(rho, a, 0.3, 0.0),
+                       np.sqrt(k) * np.hypot(50.0, rho * 0.05)))
 
 
 # --- frame_rngs -----------------------------------------------------------------------------------

@@ -7,6 +7,7 @@ tests/core/test_crater_detect.py and tests/test_render_ops.py.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,11 +16,13 @@ import pytest
 import rerun as rr
 from conftest import run_stages, small_config
 
+from pipeline.config import ConfigError
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors import height_map
 from pipeline.io.catalogue import load_catalogue
 from pipeline.io.store import RunStore
 from pipeline.io.tables import xyz
+from pipeline.ops import detector_error
 from pipeline.viz.rerun import rendered as rerun_rendered
 
 pytestmark = pytest.mark.slow  # rendering 1024 x 1024 frames: `just test-slow` (and CI)
@@ -112,3 +115,26 @@ def test_images_scenario_runs_end_to_end_from_pixels(tmp_path, catalogue_db: Pat
     assert np.isfinite(nav["err_pos_x_m"].to_numpy()).all()
     report = store.path("report.md").read_text()
     assert "## Rendered images and craters detected in their pixels" in report
+
+
+def test_the_navigator_weighs_pixels_by_the_detectors_calibrated_errors(tmp_path,
+                                                                        catalogue_db: Path
+                                                                        ) -> None:
+    """estimation.pixel_errors = "calibrated": the render stage's split of the detector's errors
+    (white and persistent) reaches identification, estimation and the filter, whose position
+    sigmas then differ from the fixed 0.3 px's; without pixels the key is refused."""
+    runs = {}
+    for how in ("assumed", "calibrated"):
+        cfg = config(tmp_path, catalogue_db, f"px-{how}", "pixels")
+        cfg = replace(cfg, estimation=replace(cfg.estimation, pixel_errors=how))
+        run_stages(cfg, tmp_path)
+        runs[how] = RunStore(f"px-{how}", tmp_path)
+    model = json.loads(runs["calibrated"].path("detector_error.json").read_text())
+    pix = detector_error.pixel_errors(model)
+    assert 0.0 < pix.centre_total_px(15.0) < 2.0
+    sig = {h: table(s, "navigation")["sigma_pos_x_m"].to_numpy() for h, s in runs.items()}
+    assert np.isfinite(sig["calibrated"]).all()
+    assert not np.allclose(sig["calibrated"], sig["assumed"])
+    with pytest.raises(ConfigError, match=r"estimation\.pixel_errors"):
+        small_config("bad", catalogue_db, WINDOW, trajectory=EPOCH, detection=CAMERA,
+                     estimation={"pixel_errors": "calibrated"})

@@ -49,7 +49,7 @@ from pipeline.core.sensors.detection import (
 )
 from pipeline.core.sensors.identification import select_used
 from pipeline.core.sensors.rim_sensing import Sensed, Sensing
-from pipeline.core.sensors.rim_sensor import catalogue_sigmas
+from pipeline.core.sensors.rim_sensor import persistent_sigmas
 from pipeline.core.vision.identify import (
     TRACK_MIN_MATCHES,
     IdentifyOptions,
@@ -202,7 +202,8 @@ class Navigator:
                 self.failures = 0
             elif mode == "tracking" and tracker is not None and identified.any():
                 if self.count_sightings:
-                    result = self._with_sightings(result, identified, tracker.x.r_mci_m)
+                    result = self._with_sightings(result, identified, tracker.x.r_mci_m,
+                                                  meas.semi_major_px)
                 tracker, rec = _update(tracker, result, identified, frame, self.filter_opts)
                 self.updates.append(rec)
         self.tracker = tracker
@@ -230,9 +231,11 @@ class Navigator:
                            float(sigma_px))
 
 
-    def _with_sightings(self, m: Match, k: np.ndarray, r_mci_m: np.ndarray) -> Match:
+    def _with_sightings(self, m: Match, k: np.ndarray, r_mci_m: np.ndarray,
+                        semi_major_px: np.ndarray) -> Match:
         """The match with its identified craters' noise grown by their earlier sightings: the
-        catalogue's variance counted K times at the K-th (`rim_sensor.measurement_sigmas`)."""
+        repeating part (the catalogue's errors, the detector's persistent ones) counted K times
+        at the K-th (`rim_sensor.measurement_sigmas`)."""
         ident = self.identification
         assert ident is not None
         rows = np.flatnonzero(k)
@@ -242,11 +245,11 @@ class Navigator:
             self.sightings[i] = c
         rho = np.linalg.norm(m.c_mci_m[rows] - r_mci_m, axis=1)
         site = ids >= SITE_TIER_ID_BASE
-        cat_h, cat_r = catalogue_sigmas(ident.opts.sensor_noise, rho, site)
+        rep_h, rep_r = persistent_sigmas(ident.opts.sensor_noise, rho, semi_major_px[rows], site)
         extra = counts - 1.0
         sigma_b, sigma_r = m.sigma_bearing.copy(), m.sigma_range_m.copy()
-        sigma_b[rows] = np.sqrt(sigma_b[rows] ** 2 + extra * (cat_h / rho) ** 2)
-        sigma_r[rows] = np.sqrt(sigma_r[rows] ** 2 + extra * np.asarray(cat_r) ** 2)
+        sigma_b[rows] = np.sqrt(sigma_b[rows] ** 2 + extra * (rep_h / rho) ** 2)
+        sigma_r[rows] = np.sqrt(sigma_r[rows] ** 2 + extra * rep_r ** 2)
         return replace(m, sigma_bearing=sigma_b, sigma_range_m=sigma_r)
 
 

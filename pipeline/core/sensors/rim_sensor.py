@@ -226,8 +226,8 @@ def apparent_size_ranges(cam: PixelCamera, m: EllipseMeasurement, up_cam: np.nda
     return np.where(rho <= limit, rho, np.nan)
 
 
-def apparent_size_range_sigma(rho_m: np.ndarray, semi_major_px: np.ndarray, sigma_px: float,
-                              diameter_share: float) -> np.ndarray:
+def apparent_size_range_sigma(rho_m: np.ndarray, semi_major_px: np.ndarray,
+                              sigma_px: float | np.ndarray, diameter_share: float) -> np.ndarray:
     """1-sigma (N,) (m) of an apparent-size range: the range follows the rim's size measured on
     both semi-axes (`conics.crater_centres_cam`), rho ~ f R / a to first order with a's noise
     averaged over two axes, so sigma_rho / rho = sqrt((sigma_px / (sqrt(2) a))^2 +
@@ -238,11 +238,53 @@ def apparent_size_range_sigma(rho_m: np.ndarray, semi_major_px: np.ndarray, sigm
 
 
 @dataclass(frozen=True)
-class SensorNoise:
-    """What sets a physical measurement's noise: ellipse noise (px), focal length (px), the range
-    source and its noise, and the catalogue's errors (zero to ignore them)."""
+class PixelErrors:
+    """A detector's ellipse errors, each a 1-sigma (px) at apparent diameter D (px) of the form
+    sqrt(s0^2 + (k D)^2) given as (s0_px, k): the centre's per axis and a semi-axis', each split
+    into a white part, fresh in every frame, and a persistent part, the same in every sighting of
+    a crater (its rim, light and terrain change little from one frame to the next, so neither
+    does the detector's error on it). The persistent semi-axis error moves both axes together.
+    `fixed(sigma_px)`: the sensor model's independent noise of sigma_px on centre and semi-axes
+    (`measure_ellipses`), nothing persistent; `pipeline.ops.detector_error` calibrates a
+    detector's on rendered truth."""
 
-    sigma_px: float
+    centre_white: tuple[float, float]
+    centre_persistent: tuple[float, float] = (0.0, 0.0)
+    axis_white: tuple[float, float] | None = None  # None: the centre's white
+    axis_persistent: tuple[float, float] = (0.0, 0.0)
+
+    @staticmethod
+    def fixed(sigma_px: float) -> PixelErrors:
+        return PixelErrors((sigma_px, 0.0))
+
+    @staticmethod
+    def _at(coef: tuple[float, float], diam_px: np.ndarray | float) -> np.ndarray | float:
+        s0, k = coef
+        return s0 if k == 0.0 else np.hypot(s0, k * np.asarray(diam_px, float))
+
+    def centre_white_px(self, diam_px: np.ndarray | float) -> np.ndarray | float:
+        return self._at(self.centre_white, diam_px)
+
+    def centre_persistent_px(self, diam_px: np.ndarray | float) -> np.ndarray | float:
+        return self._at(self.centre_persistent, diam_px)
+
+    def axis_white_px(self, diam_px: np.ndarray | float) -> np.ndarray | float:
+        return self._at(self.axis_white or self.centre_white, diam_px)
+
+    def axis_persistent_px(self, diam_px: np.ndarray | float) -> np.ndarray | float:
+        return self._at(self.axis_persistent, diam_px)
+
+    def centre_total_px(self, diam_px: np.ndarray | float) -> np.ndarray | float:
+        """One frame's centre error per axis (px): white and persistent together."""
+        return np.hypot(self.centre_white_px(diam_px), self.centre_persistent_px(diam_px))
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """What sets a physical measurement's noise: the detector's ellipse errors (px), focal length
+    (px), the range source and its noise, and the catalogue's errors (zero to ignore them)."""
+
+    pixel: PixelErrors
     f_px: float
     range_source: str  # per_crater | apparent_size | none
     sigma_range_m: float  # per_crater ranges
@@ -266,30 +308,52 @@ def catalogue_sigmas(noise: SensorNoise, rho_m: np.ndarray, site: np.ndarray | N
     return h, (np.hypot(v, rho_m * d) if noise.range_source == "apparent_size" else v)
 
 
+def persistent_sigmas(noise: SensorNoise, rho_m: np.ndarray, semi_major_px: np.ndarray,
+                      site: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per crater (N,): the part of a measurement's 1-sigma that repeats in every sighting of the
+    crater, across the line of sight (m) and along it (m): the catalogue's errors
+    (`catalogue_sigmas`) and the detector's persistent centre and size errors (`PixelErrors`),
+    the latter as rho sigma_c / f across and, with apparent-size ranges, rho sigma_a / a along."""
+    rho = np.asarray(rho_m, dtype=float)
+    a = np.asarray(semi_major_px, dtype=float)
+    cat_h, cat_r = catalogue_sigmas(noise, rho, site)
+    pix = noise.pixel
+    across = (np.hypot(rho * pix.centre_persistent_px(2 * a) / noise.f_px, cat_h)
+              if pix.centre_persistent != (0.0, 0.0) else cat_h)
+    along = (np.hypot(rho * pix.axis_persistent_px(2 * a) / a, cat_r)
+             if noise.range_source == "apparent_size" and pix.axis_persistent != (0.0, 0.0)
+             else cat_r)
+    return np.broadcast_to(across, rho.shape), np.broadcast_to(along, rho.shape)
+
+
 def measurement_sigmas(noise: SensorNoise, rho_m: np.ndarray, semi_major_px: np.ndarray,
                        sightings: np.ndarray | None = None, site: np.ndarray | None = None
                        ) -> tuple[np.ndarray, np.ndarray]:
     """Per crater (N,): the bearing's 1-sigma per axis (rad) and the range's (m) at ranges rho_m
-    (m) and apparent semi-major axes (px). Bearing: the pixel noise as sigma_px / f (its value
-    at the boresight, an upper bound elsewhere in a pinhole image) and the catalogue's
-    horizontal error across the line of sight (`catalogue_sigmas`). Range: the source's noise
-    (`apparent_size_range_sigma` for apparent sizes) and the catalogue's along the line of
-    sight, to first order (the camera looks down). Without ranges: 1 m (unused). `site` (N,)
-    marks the site tier's craters (their map's relative error).
+    (m) and apparent semi-major axes (px). Bearing: the detector's white centre error over f
+    (its value at the boresight, an upper bound elsewhere in a pinhole image) and the part that
+    repeats in every sighting (`persistent_sigmas`: the catalogue's horizontal error and the
+    detector's persistent centre error) across the line of sight. Range: the source's noise
+    (`apparent_size_range_sigma` of the white semi-axis error for apparent sizes) and the
+    repeating part along the line of sight, to first order (the camera looks down). Without
+    ranges: 1 m (unused). `site` (N,) marks the site tier's craters (their map's relative
+    error).
 
-    A catalogue error is the same in every frame that sees the crater: a filter that fuses K
+    A repeating error is the same in every frame that sees the crater: a filter that fuses K
     sightings as independent must count it once, so `sightings` (N,) (K per crater) multiplies
-    the catalogue variances by K (its information then sums to one look's; a Schmidt-style
-    consider approximation). None: 1 (a single-frame fix)."""
+    its variance by K (its information then sums to one look's; a Schmidt-style consider
+    approximation). None: 1 (a single-frame fix)."""
     rho = np.asarray(rho_m, dtype=float)
     k = np.sqrt(np.ones(rho.shape) if sightings is None else np.asarray(sightings, float))
-    cat_h, cat_r = catalogue_sigmas(noise, rho, site)
-    sigma_b = np.hypot(noise.sigma_px / noise.f_px, k * cat_h / rho)
+    rep_h, rep_r = persistent_sigmas(noise, rho, semi_major_px, site)
+    diam = 2 * np.asarray(semi_major_px, dtype=float)
+    sigma_b = np.hypot(noise.pixel.centre_white_px(diam) / noise.f_px, k * rep_h / rho)
     if noise.range_source == "per_crater":
-        sigma_r = np.hypot(noise.sigma_range_m, k * cat_r)
+        sigma_r = np.hypot(noise.sigma_range_m, k * rep_r)
     elif noise.range_source == "apparent_size":
-        sigma_r = np.hypot(apparent_size_range_sigma(rho, semi_major_px, noise.sigma_px, 0.0),
-                           k * cat_r)
+        sigma_r = np.hypot(apparent_size_range_sigma(rho, semi_major_px,
+                                                     noise.pixel.axis_white_px(diam), 0.0),
+                           k * rep_r)
     else:
         sigma_r = np.ones(rho.shape)
     return sigma_b, sigma_r

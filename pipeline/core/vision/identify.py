@@ -160,7 +160,9 @@ def track(meas: sensor.EllipseMeasurement, r_mci_m: np.ndarray, q_mci_from_body:
     y = matching.ellipse_vectors(meas.centre_px, meas.semi_major_px, meas.semi_minor_px,
                                  meas.angle_rad)
     cov = matching.ellipse_vector_covariance(meas.semi_major_px, meas.semi_minor_px,
-                                             meas.angle_rad, opts.sensor_noise.sigma_px)
+                                             meas.angle_rad,
+                                             opts.sensor_noise.pixel.centre_total_px(
+                                                 2 * meas.semi_major_px))
     assoc = matching.associate(y, cov, pred, opts.gate_probability)
     matched = np.full(assoc.candidate.shape, -1, np.int64)  # no craters in view: none
     gated = assoc.candidate >= 0
