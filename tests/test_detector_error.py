@@ -87,3 +87,38 @@ def test_calibration_recovers_a_known_centre_sigma_law() -> None:
     assert b["diameter_sigma_share"] == pytest.approx(0.02, rel=0.1)
     s = detector_error.centre_sigma_px(m, np.array([20.0, 100.0]), np.array([40.0, 70.0]))
     assert s[1] > s[0]
+
+
+def test_emission_bias_is_recovered_and_left_out_of_the_split() -> None:
+    """A planted centre bias of -0.2 px per tan(emission) along its growing direction comes
+    back per size bin, where there is none it is 0 (not told from noise), and the split is of
+    the errors it leaves."""
+    from pipeline.core.sensors import camera
+    from pipeline.core.sensors.rim_sensor import emission_geometry
+
+    cam = camera.PixelCamera.from_fov(camera.FieldOfView.from_config(45.0, "corner_half_angle"),
+                                      1024)
+    nadir = {0: np.array([0.0, 0.0, 1.0])}
+    rng = np.random.default_rng(5)
+    dets = sightings(rng, 1500, 10, (0.1, 0.0), (0.15, 0.0), (0.1, 0.0), (0.1, 0.0))
+    centre = np.stack([dets["true_ellipse_u_px"].to_numpy(), dets["true_ellipse_v_px"].to_numpy()],
+                      -1)
+    tan_e, direction = emission_geometry(cam, centre, nadir[0])
+    diam = 2 * dets["true_semi_major_px"].to_numpy()
+    shift = np.where(diam < 50, -0.2, 0.0)[:, None] * tan_e[:, None] * direction
+    biased = dets.with_columns(frame=pl.lit(0, pl.Int32),
+                               ellipse_u_px=pl.col("ellipse_u_px") + shift[:, 0],
+                               ellipse_v_px=pl.col("ellipse_v_px") + shift[:, 1])
+    eb = detector_error.emission_bias(biased, cam, nadir)
+    beta = dict(zip(eb["edges_px"], eb["per_tan_px"], strict=True))
+    for lo in (10.0, 15.0, 20.0, 30.0):
+        assert beta[lo] == pytest.approx(-0.2, abs=0.05), (lo, beta)
+    assert beta[50.0] == 0.0 or abs(beta[50.0]) < 0.05
+    model = detector_error.calibrate(
+        pl.DataFrame({"apparent_diam_px": diam, "incidence_deg": 50.0, "detected": True,
+                      "centre_error_px": 0.1, "diameter_error_share": 0.0}),
+        biased, n_images=10, cam=cam, nadir_cam=nadir)
+    pix = detector_error.pixel_errors(model)
+    assert pix.bias_per_tan_at(np.array([12.0]))[0] == pytest.approx(-0.2, abs=0.05)
+    assert pix.centre_white_px(20.0) == pytest.approx(0.1, rel=0.1)
+    assert pix.centre_persistent_px(20.0) == pytest.approx(0.15, rel=0.15)

@@ -21,6 +21,7 @@ import json
 from dataclasses import replace
 from typing import Any
 
+import numpy as np
 import polars as pl
 
 from pipeline.config import RunConfig
@@ -76,6 +77,7 @@ def run(ctx: StageContext) -> StageResult:
     phys = model.physical
     results = []
     pngs: list[bytes] = []
+    nadir_cam: dict[int, np.ndarray] = {}  # each frame's true nadir, camera axes (calibration)
     if chosen.height:
         assert phys is not None and cfg.trajectory.epoch_utc is not None  # the config checks
         world = sensor.world_craters(craters.r_mcmf_m, craters.diam_km * 1e3, craters.crater_id,
@@ -90,6 +92,10 @@ def run(ctx: StageContext) -> StageResult:
             opts = replace(opts, surface=world_surface(terrain, grid, world.r_mcmf_m,
                                                        world.diam_m, ages))
         frame = chosen["frame"].to_numpy()
+        dcm_cam = phys.camera.dcm_cam_from_body @ dcm_body_from_mcmf
+        nadir_cam = dict(zip(frame.tolist(), np.einsum(
+            "nij,nj->ni", dcm_cam, -r_mcmf / np.linalg.norm(r_mcmf, axis=1, keepdims=True)),
+            strict=True))
         with progress_bar("rendering and detecting", chosen.height) as advance:
             for i in range(chosen.height):
                 rng = stream(cfg.seed, "render", int(frame[i]))
@@ -119,7 +125,9 @@ def run(ctx: StageContext) -> StageResult:
         schema={"frame": pl.Int32, "t_s": pl.Float64, "bits": pl.Int32, "png": pl.Binary}))
     tx.output("render.json").write_text(json.dumps(facts, indent=2) + "\n")
     error_model = {"detector": cfg.render.detector,
-                   **detector_error.calibrate(truth, detections, len(results))}
+                   **detector_error.calibrate(truth, detections, len(results),
+                                              phys.camera if phys is not None else None,
+                                              nadir_cam)}
     tx.output("detector_error.json").write_text(json.dumps(error_model, indent=2) + "\n")
     folder = ctx.store.stage_dir("render")
     if not results:

@@ -554,6 +554,30 @@ def test_persistent_pixel_errors_count_once_per_crater() -> None:
                        np.sqrt(k) * np.hypot(50.0, rho * 0.05)))
 
 
+def test_emission_bias_is_taken_off_along_the_growing_emission() -> None:
+    """A nadir camera: no emission at the principal point, tan(e) = 1 one focal length off
+    along +u, growing outwards; the calibrated bias beta tan(e) comes off along that direction,
+    only for the sizes whose bin has one, and the conic follows the centre."""
+    cam = camera.PixelCamera.from_fov(camera.FieldOfView.from_config(45.0, "corner_half_angle"),
+                                      1024)
+    nadir = np.array([0.0, 0.0, 1.0])
+    pts = np.array([[cam.cx_px, cam.cy_px], [cam.cx_px + cam.fx_px, cam.cy_px],
+                    [cam.cx_px, cam.cy_px - 0.5 * cam.fy_px]])
+    tan_e, direction = sensor.emission_geometry(cam, pts, nadir)
+    np.testing.assert_allclose(tan_e, [0.0, 1.0, 0.5], atol=1e-9)
+    np.testing.assert_allclose(direction[1:], [[1.0, 0.0], [0.0, -1.0]], atol=1e-6)
+    a = np.array([6.0, 6.0, 30.0])  # 12, 12 and 60 px across
+    m = sensor.EllipseMeasurement(pts, a, 0.9 * a, np.zeros(3),
+                                  conics.conic_from_ellipse(pts, a, 0.9 * a, np.zeros(3)))
+    pix = sensor.PixelErrors((0.1, 0.0), bias_edges_px=(10.0, 50.0), bias_per_tan_px=(-0.2, 0.0))
+    out = sensor.emission_corrected(cam, m, nadir, pix)
+    np.testing.assert_allclose(out.centre_px - pts, [[0.0, 0.0], [0.2, 0.0], [0.0, 0.0]],
+                               atol=1e-9)
+    np.testing.assert_allclose(conics.ellipse_from_conic(out.conic).centre_px, out.centre_px,
+                               atol=1e-6)
+    assert sensor.emission_corrected(cam, m, nadir, sensor.PixelErrors.fixed(0.3)) is m
+
+
 # --- frame_rngs -----------------------------------------------------------------------------------
 
 

@@ -39,6 +39,7 @@ from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.math.streams import stream
 from pipeline.core.navigation import filter
 from pipeline.core.navigation.eskf import ATT, POS, POSE, NavState
+from pipeline.core.sensors.camera import PixelCamera
 from pipeline.core.sensors.detection import (
     CraterArrays,
     DetectionModel,
@@ -49,7 +50,12 @@ from pipeline.core.sensors.detection import (
 )
 from pipeline.core.sensors.identification import select_used
 from pipeline.core.sensors.rim_sensing import Sensed, Sensing
-from pipeline.core.sensors.rim_sensor import persistent_sigmas
+from pipeline.core.sensors.rim_sensor import (
+    EllipseMeasurement,
+    PixelErrors,
+    emission_corrected,
+    persistent_sigmas,
+)
 from pipeline.core.vision.identify import (
     TRACK_MIN_MATCHES,
     IdentifyOptions,
@@ -174,11 +180,14 @@ class Navigator:
                         tracker.p[POS, POS])[-1])))
                 star = star_tracker(dcm_body_from_mcmf_true, dcm_mci_from_mcmf,
                                     opts.star_tracker_sigma_rad, rngs["star"])
+                meas = _unbiased(meas, cam, opts.sensor_noise.pixel, r_rough, star)
                 result = lost_in_space(meas, r_rough, radius, star, dcm_mci_from_mcmf,
                                        sun_mcmf_m, craters, model, opts, indexes,
                                        rngs["verify"])
         elif tracker is not None and not lost:
             mode = "tracking"
+            meas = _unbiased(meas, cam, opts.sensor_noise.pixel, tracker.x.r_mci_m,
+                             rotations.dcm_from_q(tracker.x.q_mci_from_body))
             result = track(meas, tracker.x.r_mci_m, tracker.x.q_mci_from_body,
                            tracker.p[np.ix_(POSE, POSE)], dcm_mci_from_mcmf, sun_mcmf_m,
                            craters, model, opts, rngs["verify"])
@@ -342,6 +351,15 @@ def _prior_sigma_px(tr: Tracker, f_px: float) -> float:
     var_pos = float(np.linalg.eigvalsh(tr.p[POS, POS])[-1])
     var_att = float(np.linalg.eigvalsh(tr.p[ATT, ATT])[-1])
     return f_px * float(np.sqrt(var_pos / altitude**2 + var_att))
+
+
+def _unbiased(meas: EllipseMeasurement, cam: PixelCamera, pixel: PixelErrors,
+              r_mci_m: np.ndarray, dcm_mci_from_body: np.ndarray) -> EllipseMeasurement:
+    """The detections with the detector's calibrated emission bias taken off
+    (`rim_sensor.emission_corrected`) at the navigator's nadir: its position (MCI, m) and
+    attitude."""
+    nadir_body = dcm_mci_from_body.T @ (-r_mci_m / np.linalg.norm(r_mci_m))
+    return emission_corrected(cam, meas, cam.dcm_cam_from_body @ nadir_body, pixel)
 
 
 def star_tracker(dcm_body_from_mcmf: np.ndarray, dcm_mci_from_mcmf: np.ndarray,

@@ -209,6 +209,43 @@ def bearings_body(cam: PixelCamera, m: EllipseMeasurement, up_cam: np.ndarray | 
     return u_cam @ cam.dcm_body_from_cam.T
 
 
+def emission_geometry(cam: PixelCamera, centre_px: np.ndarray, nadir_cam: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """tan of the emission angle (N,) at image points (N, 2) px (the angle between the line of
+    sight and the local vertical, the ground taken level: the angle from the nadir direction
+    nadir_cam (3,), unit, camera axes) and the unit image direction (N, 2) in which it grows."""
+    xy = (np.asarray(centre_px, float) - [cam.cx_px, cam.cy_px]) / [cam.fx_px, cam.fy_px]
+    ray = np.column_stack([xy, np.ones(len(xy))])
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    cos_e = np.clip(ray @ nadir_cam, 1e-6, 1.0)
+    tan_e = np.sqrt(np.maximum(1.0 - cos_e**2, 0.0)) / cos_e
+    away = ray - cos_e[:, None] * nadir_cam  # grows the emission, perpendicular to the ray
+    norm = np.linalg.norm(away, axis=1, keepdims=True)
+    step = ray + 1e-4 * away / np.maximum(norm, 1e-12)
+    uv = np.column_stack([cam.fx_px * step[:, 0] / step[:, 2] + cam.cx_px,
+                          cam.fy_px * step[:, 1] / step[:, 2] + cam.cy_px])
+    direction = uv - centre_px
+    length = np.linalg.norm(direction, axis=1, keepdims=True)
+    return tan_e, np.where(length > 0, direction / np.maximum(length, 1e-12), 0.0)
+
+
+def emission_corrected(cam: PixelCamera, m: EllipseMeasurement, nadir_cam: np.ndarray,
+                       pixel: PixelErrors) -> EllipseMeasurement:
+    """The ellipses with the detector's calibrated emission bias taken off their centres:
+    a crater seen obliquely shows its walls unevenly, and the detector puts its centre
+    beta(D) tan(e) px along the image direction of growing emission e (`PixelErrors`,
+    calibrated on rendered truth by `pipeline.ops.detector_error`); nadir_cam (3,) the
+    navigator's nadir direction in camera axes. Unchanged without a bias model."""
+    if not pixel.bias_edges_px or len(m.semi_major_px) == 0:
+        return m
+    tan_e, direction = emission_geometry(cam, m.centre_px, nadir_cam)
+    shift = (pixel.bias_per_tan_at(2 * m.semi_major_px) * tan_e)[:, None] * direction
+    centre = m.centre_px - shift
+    return EllipseMeasurement(centre, m.semi_major_px, m.semi_minor_px, m.angle_rad,
+                              conics.conic_from_ellipse(centre, m.semi_major_px, m.semi_minor_px,
+                                                        m.angle_rad))
+
+
 # A rim's apparent-size range is at most ~f R / b (b the ellipse's semi-minor axis, the rim
 # foreshortened); ten times that is no rim's.
 APPARENT_SIZE_RANGE_LIMIT = 10.0
@@ -252,6 +289,10 @@ class PixelErrors:
     centre_persistent: tuple[float, float] = (0.0, 0.0)
     axis_white: tuple[float, float] | None = None  # None: the centre's white
     axis_persistent: tuple[float, float] = (0.0, 0.0)
+    # the centre's bias along the image direction of growing emission, per tan(emission) (px),
+    # in apparent-diameter bins of lower edges `bias_edges_px` (`emission_corrected`)
+    bias_edges_px: tuple[float, ...] = ()
+    bias_per_tan_px: tuple[float, ...] = ()
 
     @staticmethod
     def fixed(sigma_px: float) -> PixelErrors:
@@ -277,6 +318,15 @@ class PixelErrors:
     def centre_total_px(self, diam_px: np.ndarray | float) -> np.ndarray | float:
         """One frame's centre error per axis (px): white and persistent together."""
         return np.hypot(self.centre_white_px(diam_px), self.centre_persistent_px(diam_px))
+
+    def bias_per_tan_at(self, diam_px: np.ndarray) -> np.ndarray:
+        """The emission bias per tan(emission) (px) at apparent diameters (N,) px (0 below the
+        first bin)."""
+        d = np.asarray(diam_px, float)
+        if not self.bias_edges_px:
+            return np.zeros(d.shape)
+        k = np.searchsorted(np.asarray(self.bias_edges_px), d, side="right") - 1
+        return np.where(k >= 0, np.asarray(self.bias_per_tan_px)[np.maximum(k, 0)], 0.0)
 
 
 @dataclass(frozen=True)
