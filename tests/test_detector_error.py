@@ -109,7 +109,7 @@ def test_emission_bias_is_recovered_and_left_out_of_the_split() -> None:
     biased = dets.with_columns(frame=pl.lit(0, pl.Int32),
                                ellipse_u_px=pl.col("ellipse_u_px") + shift[:, 0],
                                ellipse_v_px=pl.col("ellipse_v_px") + shift[:, 1])
-    eb = detector_error.emission_bias(biased, cam, nadir)
+    eb = detector_error.emission_bias(biased, (tan_e, direction))
     beta = dict(zip(eb["edges_px"], eb["per_tan_px"], strict=True))
     for lo in (10.0, 15.0, 20.0, 30.0):
         assert beta[lo] == pytest.approx(-0.2, abs=0.05), (lo, beta)

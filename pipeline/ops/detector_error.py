@@ -52,10 +52,10 @@ SPLIT_KEYS = ("centre_white", "centre_persistent", "axis_white", "axis_persisten
 
 def _fit_s0_k(diam_px: np.ndarray, sigma_px: np.ndarray, n: np.ndarray) -> tuple[float, float]:
     """(s0, k) of sigma(D) = sqrt(s0^2 + (k D)^2) by weighted least squares on sigma^2 (weights
-    n), s0, k >= 0; NaN with fewer than two points; a single level (k = 0) when they agree."""
+    n), s0, k >= 0; NaN with fewer than two points."""
     if diam_px.size < 2:
         return float("nan"), float("nan")
-    sw = np.sqrt(n.astype(float))
+    sw = np.sqrt(np.asarray(n, float))
     a = np.stack([np.ones_like(diam_px), diam_px * diam_px], -1) * sw[:, None]
     coef, *_ = np.linalg.lstsq(a, sigma_px ** 2 * sw, rcond=None)
     coef = np.maximum(coef, 0.0)
@@ -116,14 +116,14 @@ def _through_origin(a: np.ndarray, t: np.ndarray, crater: np.ndarray) -> float:
     return b if abs(b) > 2 * se else 0.0
 
 
-def emission_bias(detections: pl.DataFrame, cam: PixelCamera, nadir_cam: dict[int, np.ndarray]
-                  ) -> dict:
-    """The centre's emission bias per apparent-size bin (module docstring): {"edges_px": [...],
-    "per_tan_px": [...], "n": [...]} (`_through_origin`: 0 where it cannot be told)."""
+def emission_bias(detections: pl.DataFrame, emission: tuple[np.ndarray, np.ndarray]) -> dict:
+    """The centre's emission bias per apparent-size bin (module docstring) of the matched
+    detections, given their `emission` (`_emission`): {"edges_px": [...], "per_tan_px": [...],
+    "n": [...]} (`_through_origin`: 0 where it cannot be told)."""
     m = detections.filter(pl.col("crater_id") >= 0)
     diam = 2 * m["true_semi_major_px"].to_numpy()
     crater = m["crater_id"].to_numpy()
-    tan_e, direction = _emission(m, cam, nadir_cam)
+    tan_e, direction = emission
     along = np.sum(_centre_errors(m) * direction, axis=1)
     edges, beta, counts = [], [], []
     for lo, hi in pairwise(SPLIT_EDGES_PX):
@@ -229,15 +229,9 @@ def calibrate(truth: pl.DataFrame, detections: pl.DataFrame, n_images: int,
                      "diameter_bias_share": float(np.median(size_err[sel])) if n else None,
                      "diameter_sigma_share": _robust_sigma(size_err[sel]) if n else None})
     use = [b for b in bins if b["n"] >= MIN_ROWS]
-    s0, k = float("nan"), float("nan")
-    if len(use) >= 2:
-        dm = np.array([b["diam_median_px"] for b in use])
-        s2 = np.array([b["centre_sigma_px"] for b in use]) ** 2
-        w = np.array([b["n"] for b in use], float)
-        a = np.stack([np.ones_like(dm), dm * dm], -1) * np.sqrt(w)[:, None]
-        coef, *_ = np.linalg.lstsq(a, s2 * np.sqrt(w), rcond=None)
-        coef = np.maximum(coef, 0.0)
-        s0, k = float(np.sqrt(coef[0])), float(np.sqrt(coef[1]))
+    s0, k = _fit_s0_k(np.array([b["diam_median_px"] for b in use]),
+                      np.array([b["centre_sigma_px"] for b in use]),
+                      np.array([b["n"] for b in use]))
     incidence: list[dict[str, Any]] = []
     for lo, hi in pairwise(INCIDENCE_EDGES_DEG):
         sel = (inc >= lo) & (inc < hi)
@@ -262,12 +256,11 @@ def _bias_and_split(detections: pl.DataFrame, cam: PixelCamera | None,
                     nadir_cam: dict[int, np.ndarray] | None) -> dict:
     if cam is None or nadir_cam is None:
         return {"split": split(detections)}
-    bias = emission_bias(detections, cam, nadir_cam)
-    m = detections.filter(pl.col("crater_id") >= 0)
-    model = PixelErrors((0.0, 0.0), bias_edges_px=tuple(bias["edges_px"]),
-                        bias_per_tan_px=tuple(bias["per_tan_px"]))
-    return {"emission_bias": bias,
-            "split": split(detections, model, _emission(m, cam, nadir_cam))}
+    emission = _emission(detections.filter(pl.col("crater_id") >= 0), cam, nadir_cam)
+    bias = emission_bias(detections, emission)
+    bias_only = PixelErrors((0.0, 0.0), bias_edges_px=tuple(bias["edges_px"]),
+                            bias_per_tan_px=tuple(bias["per_tan_px"]))
+    return {"emission_bias": bias, "split": split(detections, bias_only, emission)}
 
 
 def centre_sigma_px(model: dict, diam_px: np.ndarray, incidence_deg: np.ndarray | None = None

@@ -92,10 +92,9 @@ def run(ctx: StageContext) -> StageResult:
             opts = replace(opts, surface=world_surface(terrain, grid, world.r_mcmf_m,
                                                        world.diam_m, ages))
         frame = chosen["frame"].to_numpy()
-        dcm_cam = phys.camera.dcm_cam_from_body @ dcm_body_from_mcmf
-        nadir_cam = dict(zip(frame.tolist(), np.einsum(
-            "nij,nj->ni", dcm_cam, -r_mcmf / np.linalg.norm(r_mcmf, axis=1, keepdims=True)),
-            strict=True))
+        nadir_cam = dict(zip(frame.tolist(),
+                             sensor.nadir_in_camera(phys.camera, dcm_body_from_mcmf, r_mcmf),
+                             strict=True))
         with progress_bar("rendering and detecting", chosen.height) as advance:
             for i in range(chosen.height):
                 rng = stream(cfg.seed, "render", int(frame[i]))

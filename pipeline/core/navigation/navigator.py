@@ -54,6 +54,7 @@ from pipeline.core.sensors.rim_sensor import (
     EllipseMeasurement,
     PixelErrors,
     emission_corrected,
+    nadir_in_camera,
     persistent_sigmas,
 )
 from pipeline.core.vision.identify import (
@@ -358,8 +359,8 @@ def _unbiased(meas: EllipseMeasurement, cam: PixelCamera, pixel: PixelErrors,
     """The detections with the detector's calibrated emission bias taken off
     (`rim_sensor.emission_corrected`) at the navigator's nadir: its position (MCI, m) and
     attitude."""
-    nadir_body = dcm_mci_from_body.T @ (-r_mci_m / np.linalg.norm(r_mci_m))
-    return emission_corrected(cam, meas, cam.dcm_cam_from_body @ nadir_body, pixel)
+    return emission_corrected(cam, meas, nadir_in_camera(cam, dcm_mci_from_body.T, r_mci_m),
+                              pixel)
 
 
 def star_tracker(dcm_body_from_mcmf: np.ndarray, dcm_mci_from_mcmf: np.ndarray,

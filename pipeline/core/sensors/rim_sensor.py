@@ -209,6 +209,14 @@ def bearings_body(cam: PixelCamera, m: EllipseMeasurement, up_cam: np.ndarray | 
     return u_cam @ cam.dcm_body_from_cam.T
 
 
+def nadir_in_camera(cam: PixelCamera, dcm_body_from_frame: np.ndarray, r_frame_m: np.ndarray
+                    ) -> np.ndarray:
+    """The nadir direction (unit, camera axes) of a camera at r_frame_m (..., 3) (m, from the
+    Moon's centre in any frame) with attitude dcm_body_from_frame (..., 3, 3), (..., 3)."""
+    down = -np.asarray(r_frame_m, float) / np.linalg.norm(r_frame_m, axis=-1, keepdims=True)
+    return np.einsum("ij,...jk,...k->...i", cam.dcm_cam_from_body, dcm_body_from_frame, down)
+
+
 def emission_geometry(cam: PixelCamera, centre_px: np.ndarray, nadir_cam: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
     """tan of the emission angle (N,) at image points (N, 2) px (the angle between the line of
