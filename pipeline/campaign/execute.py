@@ -278,6 +278,9 @@ def _run_on_ray(pending: list[RunTask], shared: dict[str, Any], catalogue: Catal
                                   "runtime_env": {"env_vars": {**ONE_THREAD,
                                                                "PYTHONPATH": _code_path()}}}
         if address is None and not os.environ.get("RAY_ADDRESS"):
+            # our own instance: a bare ray.init() joins any local one another process started
+            # (another campaign, a parallel test), which refuses num_cpus
+            address = "local"
             kwargs["num_cpus"] = clamp_workers(workers, os.cpu_count()) or os.cpu_count() or 1
         ray.init(address=address, **kwargs)
         started = True
