@@ -1,4 +1,4 @@
-"""The estimators' fast paths against their references: the closed-form normal equations against
+"""The estimators' fast paths against their references: the compiled normal equations against
 the whitened Jacobian, the craters' plane start against the ML pose, the safeguarded
 Gauss-Newton against scipy's least squares, the checks on a fit's own system against the checks
 on the normal equations at the estimate, and the condition-number bound against the eigenvalues.
@@ -31,8 +31,9 @@ def _system(r, q, c, u, rho, sb, sr):
 
 @pytest.mark.parametrize("case", ["ranges", "none", "mixed", "per_crater"])
 def test_normal_equations_equal_the_jacobians(case):
-    """J^T J, J^T e and e^T e in closed form equal those of the (N, 4, 6) Jacobian to rounding,
-    off the minimum (residuals of ~30 sigma) and with every kind of noise and missing range."""
+    """J^T J, J^T e and e^T e summed crater by crater equal those of the (N, 4, 6) Jacobian
+    to rounding, off the minimum (residuals of ~30 sigma) and with every kind of noise and
+    missing range."""
     rng = np.random.default_rng(11)
     for _ in range(20):
         n = int(rng.integers(3, 40))
@@ -168,3 +169,56 @@ def test_the_condition_bound_bounds_the_condition_number():
         _, (low, high) = scaled_inverse(h, direct=True)
         if exact < 1e12:  # both eigensolvers accurate
             assert high / low == pytest.approx(exact, rel=1e-6)
+
+
+def test_the_compiled_cholesky_solve_matches_numpy_and_refuses_what_is_not_positive_definite():
+    """The compiled Gauss-Newton's 6 x 6 solve: I^-1 g and I^-1 equal numpy's on well- and
+    ill-scaled SPD matrices; an indefinite, a singular or a NaN matrix is not ok."""
+    from pipeline.core.estimation import pose_kernels
+
+    rng = np.random.default_rng(16)
+    for _ in range(50):
+        a = rng.normal(size=(12, 6)) * 10.0 ** rng.uniform(-3, 3, 6)
+        h, g = a.T @ a, rng.normal(size=6)
+        ok, step, inv = pose_kernels._cholesky_solve(h, g)
+        assert ok
+        np.testing.assert_allclose(step, np.linalg.solve(h, g), rtol=1e-6,
+                                   atol=1e-12 * np.abs(np.linalg.solve(h, g)).max())
+        np.testing.assert_allclose(inv, np.linalg.inv(h), rtol=1e-6,
+                                   atol=1e-9 * np.abs(np.linalg.inv(h)).max())
+    bad = [np.diag([1.0, 1.0, 1.0, 1.0, 1.0, -1.0]), np.diag([1.0, 1.0, 0.0, 1.0, 1.0, 1.0]),
+           np.full((6, 6), np.nan)]
+    for h in bad:
+        assert not pose_kernels._cholesky_solve(h, np.ones(6))[0]
+
+
+def test_the_compiled_eigen_and_lu_solvers_match_numpy():
+    """The planar start's 9 x 9 (and 4 x 4) symmetric eigen-decomposition and its LU solve
+    against numpy's LAPACK: eigenvalues, the null vector of a nearly singular PSD matrix (the
+    homography's: smallest eigenvalue 1e-10 of the largest), solutions; a singular matrix is
+    not solved."""
+    from pipeline.core.estimation import pose_kernels
+
+    rng = np.random.default_rng(17)
+    for n in (4, 9):
+        for _ in range(30):
+            a = rng.normal(size=(n, n))
+            sym = a + a.T
+            ev, vec = pose_kernels._symmetric_eigen(sym)
+            np.testing.assert_allclose(ev, np.linalg.eigvalsh(sym), rtol=0,
+                                       atol=1e-12 * np.abs(ev).max())
+            np.testing.assert_allclose(vec.T @ vec, np.eye(n), atol=1e-12)
+            np.testing.assert_allclose(sym @ vec, vec * ev, atol=1e-11 * np.abs(ev).max())
+            null = rng.normal(size=n)
+            null /= np.linalg.norm(null)
+            basis = np.linalg.qr(np.column_stack([null, rng.normal(size=(n, n - 1))]))[0]
+            psd = basis @ np.diag(np.r_[1e-10, rng.uniform(0.5, 2.0, n - 1)]) @ basis.T
+            ev, vec = pose_kernels._symmetric_eigen(psd)
+            assert ev[0] == pytest.approx(1e-10, rel=1e-4)
+            assert abs(vec[:, 0] @ null) == pytest.approx(1.0, abs=1e-12)
+            b = rng.normal(size=n)
+            ok, x = pose_kernels._lu_solve(sym, b)
+            assert ok
+            np.testing.assert_allclose(x, np.linalg.solve(sym, b), rtol=1e-8)
+    singular = np.ones((9, 9))
+    assert not pose_kernels._lu_solve(singular, np.ones(9))[0]

@@ -15,9 +15,9 @@ Two halves: the simulator (`true_bearings`, `measure`) and the navigator's model
 normalised residuals (`predict`, `jacobians`, `whitened_jacobian`, `whitened_system`,
 `squared_normalised_residuals`), the one model of the estimators, the Fisher information and
 CRLB, the robust gate and the checks; `normal_equations` sums the same model's J^T J, J^T e and
-e^T e in closed form, without the (N, 4, 6) Jacobian. `true_bearings` keeps its own arithmetic
-(`np.linalg.norm`) so that simulated detections stay bit-for-bit as before; `predict` agrees
-with it to ~1e-16.
+e^T e crater by crater (compiled, `pose_kernels`), without the (N, 4, 6) Jacobian.
+`true_bearings` keeps its own arithmetic (`np.linalg.norm`) so that simulated detections stay
+bit-for-bit as before; `predict` agrees with it to ~1e-16.
 """
 
 from __future__ import annotations
@@ -219,35 +219,32 @@ class Frame(NamedTuple):
 
     c_mci_m: np.ndarray  # (N, 3) craters, MCI (m)
     u_body: np.ndarray  # (N, 3) measured unit bearings, body
-    inv_sigma_bearing: float | np.ndarray  # 1 / sigma_bearing: a number or (N, 1)
+    inv_sigma_bearing: np.ndarray  # (N,) 1 / sigma_bearing
     max_inv_sigma_bearing: float  # the largest 1 / sigma_bearing
     rho_m: np.ndarray  # (N,) measured ranges (m), 0 where there is none
-    sigma_range_m: float | np.ndarray | None  # a number, or (N,) with inf where there is no
-    # range; None: no crater has a range
-    inv_sigma_range: float | np.ndarray | None  # 1 / sigma_range_m (0 where no range)
+    sigma_range_m: np.ndarray | None  # (N,), inf where there is no range; None: no crater
+    # has a range
+    inv_sigma_range: np.ndarray  # (N,) 1 / sigma_range_m (0 where no range)
 
 
 def frame(c_mci_m: np.ndarray, u_body: np.ndarray, rho_m: np.ndarray, sigma_bearing: Sigma,
           sigma_range_m: Sigma) -> Frame:
     """`Frame` of craters (N, 3) (MCI, m), unit bearings (N, 3) (body), ranges (N,) (m, NaN: no
     range) and noise (a number or (N,) per crater, not validated: `noise`)."""
+    n = rho_m.size
     missing = np.isnan(rho_m)
-    if np.ndim(sigma_bearing) == 0:
-        inv_b: float | np.ndarray = 1.0 / float(sigma_bearing)
-        top = float(inv_b)
-    else:
-        inv_b = 1.0 / np.asarray(sigma_bearing, dtype=float)
-        top = float(inv_b.max())
-        inv_b = inv_b[:, None]
-    if not missing.any():
-        sigma_r = float(sigma_range_m) if np.ndim(sigma_range_m) == 0 \
-            else np.asarray(sigma_range_m, dtype=float)
-        return Frame(c_mci_m, u_body, inv_b, top, rho_m, sigma_r, 1.0 / sigma_r)
+    inv_b = np.broadcast_to(1.0 / np.asarray(sigma_bearing, dtype=float), (n,))
+    top = float(inv_b.max()) if n else 0.0
+    c = np.ascontiguousarray(c_mci_m, dtype=float)
+    u = np.ascontiguousarray(u_body, dtype=float)
     if missing.all():
-        return Frame(c_mci_m, u_body, inv_b, top, np.zeros(rho_m.size), None, None)
-    sigma_r = np.where(missing, np.inf, sigma_range_m)
-    return Frame(c_mci_m, u_body, inv_b, top, np.where(missing, 0.0, rho_m), sigma_r,
-                 1.0 / sigma_r)
+        return Frame(c, u, np.ascontiguousarray(inv_b), top, np.zeros(n), None, np.zeros(n))
+    sigma_r = np.broadcast_to(np.asarray(sigma_range_m, dtype=float), (n,))
+    if missing.any():
+        sigma_r = np.where(missing, np.inf, sigma_r)
+        rho_m = np.where(missing, 0.0, rho_m)
+    return Frame(c, u, np.ascontiguousarray(inv_b), top, np.ascontiguousarray(rho_m, dtype=float),
+                 sigma_r, np.ascontiguousarray(1.0 / sigma_r))
 
 
 def rounding_level(f: Frame, rho_pred_m: np.ndarray) -> float:
@@ -273,73 +270,14 @@ def normal_equations(r_mci_m: np.ndarray, dcm_mci_from_body: np.ndarray, f: Fram
                      ) -> NormalEquations:
     """sum J^T J, sum J^T e and e^T e of `whitened_system` (the same model, state [dr MCI (m),
     dtheta body (rad)]) of the frame `f` at the pose (r_mci_m (3,), dcm_mci_from_body (3, 3)),
-    in closed form from one product of per-crater columns instead of the (N, 4, 6) Jacobian
-    (equal to rounding, not bit for bit).
+    summed crater by crater (`pose_kernels.normal_sums`, compiled) instead of through the
+    (N, 4, 6) Jacobian (equal to rounding, not bit for bit)."""
+    from pipeline.core.estimation.pose_kernels import normal_sums  # lazy: Numba costs ~1 s
 
-    With w_j the MCI line of sight, s_j = 1 / rho_j the inverse predicted range, h_j = R^T w_j
-    the predicted bearing, p_j = (I - h_j h_j^T) u_j the bearing residual, e_j = rho_meas_j -
-    rho_j and weights beta = 1 / sigma_bearing^2, alpha = 1 / sigma_range^2 (0 without a range):
-    I_rr = sum alpha w w^T + beta s^2 (I - w w^T), I_r,theta = -[sum beta s w]x R,
-    I_theta,theta = sum beta (I - h h^T); gradient_r = -sum alpha e w + beta s R p,
-    gradient_theta = -sum beta h x p; cost = sum alpha e^2 + beta |p|^2. The sums are entries of
-    K = L^T L with the columns L = [w, h, p, s w, s] / sigma_bearing and [w, e] / sigma_range.
-    p is formed as v - h (v . h) from the small v = u - h, so that it is tangent to h to its own
-    rounding (u - h cos would leave eps along the lines of sight: the weak depth direction)."""
-    n = f.rho_m.size
-    inv_r = f.inv_sigma_range
-    cols = np.empty((n, 13 if inv_r is None else 17))
-    d = f.c_mci_m - r_mci_m
-    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
-    s = cols[:, 12]
-    np.divide(1.0, rho, out=s)
-    w = cols[:, :3]
-    np.multiply(d, s[:, None], out=w)
-    h = cols[:, 3:6]
-    np.matmul(w, dcm_mci_from_body, out=h)
-    v = f.u_body - h
-    along = np.einsum("ij,ij->i", v, h)
-    np.subtract(v, h * along[:, None], out=cols[:, 6:9])
-    np.multiply(w, s[:, None], out=cols[:, 9:12])
-    if inv_r is not None:
-        np.multiply(w, inv_r[:, None] if isinstance(inv_r, np.ndarray) else inv_r,
-                    out=cols[:, 13:16])
-        np.multiply(f.rho_m - rho, inv_r, out=cols[:, 16])
-    inv_b = f.inv_sigma_bearing
-    if isinstance(inv_b, np.ndarray):
-        cols[:, :13] *= inv_b
-        b = 1.0
-    else:
-        b = inv_b * inv_b
-    k = (cols.T @ cols).tolist()
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = dcm_mci_from_body.tolist()
-    (h00, h01, h02), (h10, h11, h12), (h20, h21, h22) = k[3][3:6], k[4][3:6], k[5][3:6]
-    (q01, q02), (q10, q12), (q20, q21) = k[6][4:6], k[7][3:6:2], k[8][3:5]
-    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = k[9][9:12], k[10][9:12], k[11][9:12]
-    g0, g1, g2 = k[12][6:9]  # sum s p
-    ss, th, cost = k[12][12], h00 + h11 + h22, b * (k[6][6] + k[7][7] + k[8][8])
-    v0, v1, v2 = b * k[0][12], b * k[1][12], b * k[2][12]  # sum beta s w
-    h_rr = [b * (ss - a00), -b * a01, -b * a02, -b * a10, b * (ss - a11), -b * a12,
-            -b * a20, -b * a21, b * (ss - a22)]
-    g_r = [-b * (r00 * g0 + r01 * g1 + r02 * g2), -b * (r10 * g0 + r11 * g1 + r12 * g2),
-           -b * (r20 * g0 + r21 * g1 + r22 * g2)]
-    if inv_r is not None:
-        (e00, e01, e02, e0), (e10, e11, e12, e1), (e20, e21, e22, e2) = \
-            k[13][13:17], k[14][13:17], k[15][13:17]
-        h_rr = [x + y for x, y in zip(h_rr, (e00, e01, e02, e10, e11, e12, e20, e21, e22),
-                                     strict=True)]
-        g_r = [g_r[0] - e0, g_r[1] - e1, g_r[2] - e2]
-        cost += k[16][16]
-    # -[v]x R, column j: R[:, j] x v
-    c00, c10, c20 = r10 * v2 - r20 * v1, r20 * v0 - r00 * v2, r00 * v1 - r10 * v0
-    c01, c11, c21 = r11 * v2 - r21 * v1, r21 * v0 - r01 * v2, r01 * v1 - r11 * v0
-    c02, c12, c22 = r12 * v2 - r22 * v1, r22 * v0 - r02 * v2, r02 * v1 - r12 * v0
-    info = np.array([
-        [*h_rr[:3], c00, c01, c02], [*h_rr[3:6], c10, c11, c12], [*h_rr[6:], c20, c21, c22],
-        [c00, c10, c20, b * (th - h00), -b * h01, -b * h02],
-        [c01, c11, c21, -b * h10, b * (th - h11), -b * h12],
-        [c02, c12, c22, -b * h20, -b * h21, b * (th - h22)]])
-    gradient = np.array([*g_r, b * (q12 - q21), b * (q20 - q02), b * (q01 - q10)])
-    return NormalEquations(info, gradient, cost, rho, along + 1.0)
+    info, gradient, cost, rho, cos_pred = normal_sums(
+        np.ascontiguousarray(r_mci_m, dtype=float), np.ascontiguousarray(dcm_mci_from_body),
+        f.c_mci_m, f.u_body, f.inv_sigma_bearing, f.rho_m, f.inv_sigma_range)
+    return NormalEquations(info, gradient, float(cost), rho, cos_pred)
 
 
 def _tangent(v: np.ndarray, u: np.ndarray) -> np.ndarray:

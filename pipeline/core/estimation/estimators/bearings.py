@@ -35,10 +35,9 @@ import itertools
 import math
 
 import numpy as np
-from scipy.linalg import lapack
 
 from pipeline.core.estimation.measurement import Sigma
-from pipeline.core.math.rotations import dcm_from_q, q_from_dcm
+from pipeline.core.math.rotations import q_from_dcm
 
 # Cold start: candidate poses come from at most this many well-spread triples (a triple near the
 # "danger cylinder", where P3P roots merge, gives a poor pose; another triple does not).
@@ -62,9 +61,6 @@ def absolute_orientation(p_body_m: np.ndarray, c_mci_m: np.ndarray
 
 
 PLANE_PASSES = 2  # homography fits of `planar_pose`: the plane, then the craters' ray points
-# [u]x = u @ _SKEW as 3 rows of 3 (entries 0 and +-1)
-_SKEW = np.zeros((3, 9))
-_SKEW[2, 1], _SKEW[1, 2], _SKEW[2, 3], _SKEW[0, 5], _SKEW[1, 6], _SKEW[0, 7] = -1, 1, 1, -1, -1, 1
 
 
 def planar_pose(c_mci_m: np.ndarray, u_body: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -82,93 +78,12 @@ def planar_pose(c_mci_m: np.ndarray, u_body: np.ndarray) -> tuple[np.ndarray, np
     quaternion from a rotation matrix", J. Guidance 23(6), 2000); the position from H_3. The
     second pass takes as p_j the point where the ray from the first pass's position through c_j
     meets the plane z = 0."""
-    n = c_mci_m.shape[0]
-    o = c_mci_m.sum(axis=0) / n
-    ox, oy, oz = o.tolist()
-    ez = _unit((ox, oy, oz))
-    ex = _unit(_cross((0.0, 0.0, 1.0) if abs(ez[2]) < 0.9 else (1.0, 0.0, 0.0), ez))
-    ey = _cross(ez, ex)
-    loc = (c_mci_m - o) @ np.array([ex, ey, ez]).T
-    p = np.ones((n, 3))
-    pts = loc[:, :2]
-    ux, uy, uz = u_body.sum(axis=0).tolist()
-    skew_u = u_body @ _SKEW
-    r: tuple[float, float, float] = (ox, oy, oz)
-    q = np.zeros(4)
-    h = np.zeros(9)
-    for k in range(PLANE_PASSES):
-        last = k == PLANE_PASSES - 1
-        if k:  # the ray points: r + t (c - r) at local height 0
-            d = (r[0] - ox, r[1] - oy, r[2] - oz)
-            r_xy = np.array([_dot(ex, d), _dot(ey, d)])
-            rz = _dot(ez, d)
-            pts = r_xy + (rz / (rz - loc[:, 2]))[:, None] * (loc[:, :2] - r_xy)
-        scale = math.sqrt(float(np.einsum("ij,ij->", pts, pts)) / n)
-        np.divide(pts, scale, out=p[:, :2])
-        a = (skew_u[:, :, None] * p[:, None, :]).reshape(3 * n, 9)
-        if k == 0:  # LAPACK called directly: numpy's wrappers cost more than these 9x9s
-            ev, vec, info = lapack.dsyevd(a.T @ a)
-            if info != 0 or not ev[1] > 1e-12 * ev[-1]:  # another null direction: a line
-                return None
-            h = vec[:, 0]
-        else:
-            _, _, h, info = lapack.dgesv(a.T @ a, h)
-            if info != 0:
-                return None
-        h0, h1, h2, h3, h4, h5, h6, h7, h8 = h.tolist()
-        if ux * h2 + uy * h5 + uz * h8 < 0.0:  # the craters in front of the camera
-            h0, h1, h2, h3, h4, h5, h6, h7, h8 = -h0, -h1, -h2, -h3, -h4, -h5, -h6, -h7, -h8
-        a1, a2, a3 = (h0, h3, h6), (h1, h4, h7), (h2, h5, h8)
-        if not last:  # R^T e_x, R^T e_y by Gram-Schmidt
-            b1 = _unit(a1)
-            b2 = _unit(_sub(a2, _scaled(b1, _dot(b1, a2))))
-            b3 = _cross(b1, b2)
-        else:  # the rotation nearest [a1, a2, a1 x a2] / ks = R^T [ex, ey, ez]
-            ks = math.sqrt(math.sqrt(_dot(a1, a1) * _dot(a2, a2)))
-            c3 = _scaled(_cross(a1, a2), 1.0 / ks)
-            # R = [ex, ey, ez] @ [a1, a2, c3]^T / ks: rows ex_i a1 + ey_i a2 + ez_i c3
-            q = _nearest_quaternion(np.array([ex, ey, ez]).T @ np.array([a1, a2, c3]) / ks)
-            rt = dcm_from_q(q).T  # R^T: b1, b2, b3 = R^T ex, R^T ey, R^T ez
-            (b1, b2, b3) = (rt @ np.array([ex, ey, ez]).T).T.tolist()
-        kappa = 0.5 * (_dot(b1, a1) + _dot(b2, a2)) / scale
-        # o - r = R a3 / kappa = [ex, ey, ez] [b1, b2, b3]^T a3 / kappa
-        lx, ly, lz = _dot(b1, a3) / kappa, _dot(b2, a3) / kappa, _dot(b3, a3) / kappa
-        r = (ox - lx * ex[0] - ly * ey[0] - lz * ez[0], oy - lx * ex[1] - ly * ey[1] - lz * ez[1],
-             oz - lx * ex[2] - ly * ey[2] - lz * ez[2])
-    return np.array(r), q
+    from pipeline.core.estimation import pose_kernels  # lazy: Numba costs ~1 s
 
-
-def _dot(a: tuple[float, ...], b: tuple[float, ...]) -> float:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _cross(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float]:
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-def _scaled(a: tuple[float, ...], k: float) -> tuple[float, float, float]:
-    return (a[0] * k, a[1] * k, a[2] * k)
-
-
-def _sub(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float]:
-    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
-
-
-def _unit(a: tuple[float, ...]) -> tuple[float, float, float]:
-    return _scaled(a, 1.0 / math.sqrt(_dot(a, a)))
-
-
-def _nearest_quaternion(d: np.ndarray) -> np.ndarray:
-    """q_a_from_b (4,) (scalar-last, w >= 0) of the rotation nearest a matrix d (3, 3) ~
-    dcm_a_from_b (Bar-Itzhack 2000): the leading eigenvector of K = (4 q q^T - I) / 3 written
-    in d's entries."""
-    (a, b, c), (e, f, g), (h, i, j) = d.tolist()
-    k = np.array([[a - f - j, e + b, h + c, i - g],
-                  [e + b, f - a - j, i + g, c - h],
-                  [h + c, i + g, j - a - f, e - b],
-                  [i - g, c - h, e - b, a + f + j]])
-    q = lapack.dsyevd(k)[1][:, 3]
-    return -q if q[3] < 0 else q
+    found, r, q = pose_kernels.planar_pose(np.ascontiguousarray(c_mci_m, dtype=float),
+                                           np.ascontiguousarray(u_body, dtype=float),
+                                           PLANE_PASSES)
+    return (r, q) if found else None
 
 
 def _pmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
