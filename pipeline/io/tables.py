@@ -48,8 +48,10 @@ def xyz_columns(prefix: str, unit: str, a: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def xyz(table: pl.DataFrame, prefix: str, unit: str) -> np.ndarray:
-    """(N, 3) array of the columns <prefix>_x<unit>, _y<unit>, _z<unit>."""
-    return np.stack([table[f"{prefix}_{c}{unit}"].to_numpy() for c in "xyz"], axis=1)
+    """(N, 3) float64 array of the columns <prefix>_x<unit>, _y<unit>, _z<unit> (float32 ones
+    widened: arithmetic in float64 whatever the storage)."""
+    return np.stack([table[f"{prefix}_{c}{unit}"].to_numpy() for c in "xyz"],
+                    axis=1).astype(np.float64, copy=False)
 
 
 def quat_columns(prefix: str, q: np.ndarray) -> dict[str, np.ndarray]:

@@ -107,7 +107,7 @@ def tables(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFram
     c_mci[matched < 0] = np.nan
     u_true = cat("u_true_body").reshape(-1, 3)
     u_meas = cat("u_meas_body").reshape(-1, 3)
-    pixel = cat("pixel_uv").reshape(-1, 2)
+    pixel = cat("pixel_uv").reshape(-1, 2).astype(np.float32)  # (pipeline.vocab.tables)
     first_row = np.repeat(np.cumsum(counts) - counts, counts)
     detections = pl.DataFrame({
         "frame": np.repeat(frame, counts).astype(np.int32), "t_s": np.repeat(t_s, counts),
@@ -117,7 +117,7 @@ def tables(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFram
         "matched_id": np.where(matched >= 0, craters.crater_id[matched], -1),
         **xyz_columns("c_mci", "_m", c_mci),
         **xyz_columns("u_true_body", "", u_true), **xyz_columns("u_meas_body", "", u_meas),
-        "rho_true_m": cat("rho_true_m"), "rho_meas_m": cat("rho_meas_m"),
+        "rho_true_m": cat("rho_true_m").astype(np.float32), "rho_meas_m": cat("rho_meas_m"),
         "pixel_u": pixel[:, 0], "pixel_v": pixel[:, 1],
         "identified": cat("identified").astype(bool), "used": cat("used").astype(bool),
         "false_match": (matched >= 0) & (row != matched),

@@ -67,8 +67,8 @@ def imu_tables(rec: FlightRecord, dt_s: float) -> tuple[pl.DataFrame, pl.DataFra
     """The IMU's increments (every step) and the truth at the record times."""
     n = rec.imu_dtheta_rad.shape[0]
     imu = pl.DataFrame({"t_s": np.arange(n) * dt_s,
-                        **xyz_columns("dtheta", "_rad", rec.imu_dtheta_rad),
-                        **xyz_columns("dv", "_m_s", rec.imu_dv_m_s)})
+                        **xyz_columns("dtheta", "_rad", rec.imu_dtheta_rad.astype(np.float32)),
+                        **xyz_columns("dv", "_m_s", rec.imu_dv_m_s.astype(np.float32))})
     _, r, v, q = _states([s for s, _, _ in rec.record_truth])
     b_g = np.array([b for _, b, _ in rec.record_truth]).reshape(-1, 3)
     b_a = np.array([b for _, _, b in rec.record_truth]).reshape(-1, 3)

@@ -93,9 +93,9 @@ def simulate(traj: TrajectoryConfig, cfg: ImuConfig, alt: AltimeterConfig, seed:
     samples = pl.DataFrame({
         "t_s": t_edges[:-1],
         **xyz_columns("dtheta", "_rad", imu.measure_triad(gyro_white, gyro, model.gyro,
-                                                          dtheta_true, dt)),
+                                                          dtheta_true, dt).astype(np.float32)),
         **xyz_columns("dv", "_m_s", imu.measure_triad(accel_white, accel, model.accel, dv_true,
-                                                      dt)),
+                                                      dt).astype(np.float32)),
     })
 
     # navigation ends with the IMU's last whole sample before impact

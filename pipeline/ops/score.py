@@ -66,7 +66,7 @@ def crlb_per_frame(trajectory: pl.DataFrame, used: pl.DataFrame, c_true_mci: np.
     start = np.r_[np.searchsorted(used["frame"].to_numpy(), frame), used.height]
     out = np.full((frame.size, 6, 6), np.nan)
     has_range = np.isfinite(used["rho_meas_m"].to_numpy())
-    rho_true = used["rho_true_m"].to_numpy()
+    rho_true = used["rho_true_m"].to_numpy().astype(np.float64)
     semi_major = (used["true_semi_major_px"].to_numpy() if sensor_noise is not None
                   else np.empty(0))
     for i in range(frame.size):

@@ -12,7 +12,8 @@ import polars as pl
 from pipeline.errors import TableSchemaError
 
 Dtype = pl.DataType | type[pl.DataType]
-F64, I32, I64, BOOL, STR = pl.Float64, pl.Int32, pl.Int64, pl.Boolean, pl.String
+F64, F32, I32, I64, BOOL, STR = (pl.Float64, pl.Float32, pl.Int32, pl.Int64, pl.Boolean,
+                                  pl.String)
 
 
 def xyz(prefix: str, unit: str = "", dtype: Dtype = F64) -> dict[str, Dtype]:

@@ -12,7 +12,7 @@ import polars as pl
 
 from pipeline.core.sensors.detection import PHYSICAL_COLUMNS
 from pipeline.vocab import ATTITUDE_MCI, QUANTITIES
-from pipeline.vocab.schema import BOOL, F64, I32, I64, STR, Group, TableSchema, quat, xyz
+from pipeline.vocab.schema import BOOL, F32, F64, I32, I64, STR, Group, TableSchema, quat, xyz
 
 __all__ = ["TABLES", "check_table"]
 
@@ -31,7 +31,13 @@ TRAJECTORY = TableSchema("trajectory", {
     "frame": I32, "t_s": F64, **_POSE, "altitude_m": F64, "speed_m_s": F64,
     "theta_m_rad": F64, "lat_deg": F64, "lon_deg": F64, **xyz("r_mcmf", "_m"),
     "nadir_error_rad": F64})
-IMU = TableSchema("imu", {"t_s": F64, **xyz("dtheta", "_rad"), **xyz("dv", "_m_s")})
+# Float32 where the noise is >= 1e4 times float32's rounding (readers compute in float64,
+# `pipeline.io.tables.xyz`): the IMU's increments (rounding <= 1e-10 rad and 3e-9 m/s a sample
+# against a tactical IMU's ~1e-6 rad and ~1e-5 m/s noise), the detections' true ranges (to
+# 0.06 m at 1,000 km) and pixels (to 6e-5 px). Unit vectors stay float64: their 1e-4 rad errors
+# are 5e-9 below 1 in a dot product, under float32's rounding of a component. So does what the
+# estimators and Table 1 read (measured bearings and ranges, the craters' positions).
+IMU = TableSchema("imu", {"t_s": F64, **xyz("dtheta", "_rad", F32), **xyz("dv", "_m_s", F32)})
 IMU_TRUTH = TableSchema("imu_truth", {"t_s": F64, **_POSE, "altitude_m": F64, **_BIASES})
 ALTIMETER = TableSchema("altimeter", {"t_s": F64, "rho_true_m": F64, "rho_meas_m": F64,
                                       "returned": BOOL, "fault": BOOL})
@@ -40,7 +46,7 @@ PHYSICAL = Group("detection.sensor = physical", dict.fromkeys(PHYSICAL_COLUMNS, 
 DETECTIONS = TableSchema("detections", {
     "frame": I32, "t_s": F64, "det_index": I32, "crater_id": I64, "diam_km": F64,
     "matched_id": I64, **xyz("c_mci", "_m"), **xyz("u_true_body"), **xyz("u_meas_body"),
-    "rho_true_m": F64, "rho_meas_m": F64, "pixel_u": F64, "pixel_v": F64,
+    "rho_true_m": F32, "rho_meas_m": F64, "pixel_u": F32, "pixel_v": F32,
     "identified": BOOL, "used": BOOL, "false_match": BOOL,
 }, {"physical": PHYSICAL,
     "identification": Group("identification.mode other than simulated", {
