@@ -206,6 +206,9 @@ def campaign(
                f"\nwrote {', '.join(map(str, written))}\nreport: {facts['report']}"
                f"\nSQL: just sql --campaign {s.name} \"SELECT * FROM campaign.envelopes LIMIT 5\""
                f"\nlook at it: just view {s.name}")
+    if facts["ok"] == 0:  # recorded, but nothing to learn from: not a success
+        raise PipelineError(f"campaign {s.name}: none of its {s.runs} runs is ok ("
+                            f"{facts['invalid']} invalid configs); the report says why")
 
 
 @app.command()
@@ -261,10 +264,14 @@ def compare(
 ) -> None:
     """Compare runs side by side: crater counts and errors against time and altitude, windows,
     and the ellipse-centre bias (runs/compare-<name>/report.md)."""
+    import json
+
     import polars as pl
 
     from pipeline.config import validate_run_id
     from pipeline.core.sensors import camera
+    from pipeline.io.files import atomic_write_text
+    from pipeline.io.store import COMPARE_MARKER, MANIFEST_FILE, foreign_folder
     from pipeline.io.tables import read_table
     from pipeline.ops import compare as cmp
     from pipeline.viz.report import compare_report
@@ -298,7 +305,12 @@ def compare(
         if bias is not None:
             biases.append(bias)
     folder = workspace().runs_dir / validate_run_id(f"compare-{name or '_'.join(runs)}")
+    kind = foreign_folder(folder)
+    if (folder / MANIFEST_FILE).is_file() or (kind is not None and kind != "comparison"):
+        raise PipelineError(f"compare: {folder}: the folder of {kind or 'a run'}, not a "
+                            "comparison's; give the comparison another --name")
     folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(folder / COMPARE_MARKER, json.dumps({"runs": runs}, indent=2) + "\n")
     path = compare_report.write_compare_report(folder, pl.concat(series, how="diagonal"),
                                        pl.concat(windows, how="diagonal"),
                                        pl.concat(biases) if biases else None)

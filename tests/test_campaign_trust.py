@@ -76,6 +76,26 @@ def test_a_damaged_part_is_left_out_of_the_outputs_not_read(workdir: Path, catal
     assert f"{part}: not the file saved with the run" in " ".join(capsys.readouterr().err.split())
 
 
+def test_a_campaign_with_no_valid_run_writes_its_outputs_and_fails(workdir: Path,
+                                                                  catalogue_db: Path,
+                                                                  monkeypatch, capsys):
+    """Every run draws an invalid config: the tables and the report say so, the command exits
+    non-zero in one line, and SQL reads the campaign's database (no run built a catalogue)."""
+    write_spec(workdir, catalogue_db, "none-valid", runs=2, body=(
+        '[dispersions]\n"detection.p_identify" = { values = [1.5, 1.6] }\n'))
+    code, out, err = main(monkeypatch, capsys, "campaign", "none-valid", "--local")
+    assert_clear_error(code, err[err.index("error: "):], "none-valid", "none of its 2 runs",
+                       "2 invalid configs")
+    root = workdir / "runs" / "none-valid"
+    for name in ("campaign.parquet", "campaign.duckdb", "report.md"):
+        assert (root / name).is_file(), name
+    assert "invalid_config" in (root / "report.md").read_text()
+    code, out, err = main(monkeypatch, capsys, "sql", "--campaign", "none-valid", "--format",
+                          "csv", "SELECT count(DISTINCT run) AS n FROM campaign.campaign")
+    assert code == 0, err
+    assert out.split() == ["n", "2"]
+
+
 @pytest.mark.parametrize(("body", "head", "trajectory", "named", "why"), [
     ('"detection.pixel_sigma_px" = { kind = "uniform", low = 0.1, high = 1.0 }', "", "",
      "detection.pixel_sigma_px", "paper's sensor"),
@@ -93,6 +113,10 @@ def test_a_damaged_part_is_left_out_of_the_outputs_not_read(workdir: Path, catal
      "detection.p_identify", "sigma = 0"),
     ('"detection.p_identify" = { kind = "uniform", low = 0.9, high = 0.9 }', "", "",
      "detection.p_identify", "must be > low"),
+    ('"render.albedo" = { kind = "uniform", low = 0.1, high = 0.2 }', "", "", "render.albedo",
+     "no frame is rendered"),
+    ('"identification.star_tracker_sigma_arcsec" = { kind = "uniform", low = 1.0, high = 9.0 }',
+     "", "", "identification.star_tracker_sigma_arcsec", "identification is simulated"),
 ])
 def test_a_dispersion_that_changes_nothing_is_refused_naming_it(workdir: Path, catalogue_db: Path,
                                                                 body, head, trajectory, named,
@@ -114,6 +138,13 @@ def test_a_dispersion_that_changes_nothing_is_refused_naming_it(workdir: Path, c
     '"detection.world_seed" = { values = [1, 2] }\n[overrides.detection]\nsensor = "physical"\n'
     'catalogue_sigma_height_m = 20.0',
     'seed = { values = [5, 6] }',
+    # a window makes the renderer's options count, an algorithm identification's
+    '"render.albedo" = { kind = "uniform", low = 0.1, high = 0.2 }\n'
+    '[overrides.render]\nstart_s = 1900.0\nend_s = 1910.0\n'
+    '[overrides.detection]\nsensor = "physical"',
+    '"identification.star_tracker_sigma_arcsec" = { kind = "uniform", low = 1.0, high = 9.0 }\n'
+    '"identification.mode" = { values = ["simulated", "lost_in_space"] }\n'
+    '[overrides.detection]\nsensor = "physical"',
 ])
 def test_a_dispersion_that_reaches_its_runs_is_accepted(workdir: Path, catalogue_db: Path, body):
     load_spec(write_spec(workdir, catalogue_db, "reach", runs=2, trajectory=PHYSICAL,

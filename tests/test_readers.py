@@ -130,6 +130,32 @@ def test_sql_does_not_register_an_output_outside_the_run(here, monkeypatch, caps
     assert_clear_error(code, err, "points outside the run")
 
 
+def test_the_viewer_refuses_a_run_with_any_output_not_as_committed(here, monkeypatch, capsys):
+    """Not only the recordings it opens: a run whose tables were altered is not the run shown."""
+    folder = copy_run(here, "tiny", "r-view-table")
+    flip_a_byte(folder / "score" / "summary.parquet")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    code, _, err = main(monkeypatch, capsys, "view", "r-view-table")
+    assert_clear_error(code, err, "summary.parquet", "r-view-table")
+
+
+def test_a_stage_naming_an_output_outside_its_folder_is_run_again(here, monkeypatch, capsys):
+    """`just run`'s freshness check holds the names as the readers do: a stage whose record
+    names a file outside its folder is not fresh, and its new commit no longer names it."""
+    secret = here / "secret-run.parquet"
+    shutil.copyfile(here / "runs" / "tiny" / "score" / "summary.parquet", secret)
+    folder = copy_run(here, "tiny", "r-escape-run")
+    entry_path = folder / "score" / "stage.json"
+    entry = json.loads(entry_path.read_text())
+    name = os.path.relpath(secret, (folder / "score").resolve())
+    entry["outputs"][name] = entry["outputs"]["summary.parquet"]
+    entry_path.write_text(json.dumps(entry))
+    code, _, err = main(monkeypatch, capsys, "run", "tiny", "--run-id", "r-escape-run")
+    assert code == 0, err
+    assert name not in json.loads((folder / "score" / "stage.json").read_text())["outputs"]
+
+
 def test_an_intact_copy_is_read(here, monkeypatch, capsys):
     copy_run(here, "tiny", "r-intact")
     result = CliRunner().invoke(app, ["sql", "--run", "r-intact", "--format", "csv",

@@ -1,8 +1,9 @@
 """Input the machine cannot honour is one line naming the file or key, never a traceback: a disk
 full in a stage's write (polars' ComputeError, a write's ENOSPC naming no file), non-UTF-8 bytes
-in a query or a spec, `--timeout-s inf`, a NUL byte or a path leaving the project in
-identification.index_dir, a render larger than the machine's memory, a run's stages into a
-campaign's folder."""
+in a query or a spec, `--timeout-s inf`, a NUL byte or a path leaving the project in a path the
+pipeline writes (identification.index_dir, catalogue.db_path), a render larger than the machine's
+memory, a run's stages into a campaign's or a comparison's folder and a comparison into a
+run's."""
 
 from __future__ import annotations
 
@@ -78,12 +79,22 @@ def test_a_non_utf8_spec_is_one_line_naming_it(workdir, monkeypatch, capsys):
     assert_clear_error(code, err, str(path), "not UTF-8", "0xff")
 
 
-@pytest.mark.parametrize(("index_dir", "why"), [
-    ("catalogue/ix\0", "NUL"), ("../../elsewhere", "leaves it"), ("a/../../b", "leaves it")])
-def test_an_index_dir_the_project_cannot_hold_is_refused(workdir, index_dir, why):
+@pytest.mark.parametrize("section", ["identification.index_dir", "catalogue.db_path"])
+@pytest.mark.parametrize(("path", "why"), [
+    ("catalogue/ix\0", "NUL"), ("../../elsewhere", "leaves it"), ("a/../../b", "leaves it"),
+    ("", "empty")])
+def test_a_written_path_the_project_cannot_hold_is_refused(workdir, section, path, why):
+    table, key = section.split(".")
     with pytest.raises(ConfigError) as err:
-        load_config("default", "x", {"identification": {"index_dir": index_dir}})
-    assert "identification.index_dir" in str(err.value) and why in str(err.value)
+        load_config("default", "x", {table: {key: path}})
+    assert section in str(err.value) and why in str(err.value)
+
+
+@pytest.mark.parametrize("path", ["..name/ix", "catalogue/./ix", "/abs/elsewhere", "~/ix"])
+def test_written_paths_inside_the_project_or_absolute_are_taken(workdir, path):
+    cfg = load_config("default", "x", {"identification": {"index_dir": path},
+                                       "catalogue": {"db_path": path + ".duckdb"}})
+    assert cfg.identification.index_dir == path and cfg.catalogue.db_path == path + ".duckdb"
 
 
 def test_a_render_the_memory_cannot_hold_is_refused_at_load(workdir):
@@ -104,3 +115,20 @@ def test_a_run_into_a_campaigns_folder_is_refused(tiny_scenario, monkeypatch, ca
     assert "Traceback" not in err
     assert_clear_error(code, err[err.index("error: "):], str(folder), "campaign", "--run-id")
     assert sorted(p.name for p in folder.iterdir()) == ["spec.toml"]
+
+
+def test_runs_and_comparisons_keep_out_of_each_others_folders(tiny_scenario, monkeypatch,
+                                                             capsys):
+    code, _, err = main(monkeypatch, capsys, "run", "tiny", "--run-id", "compare-x")
+    assert code == 0, err  # a run may be named so while no comparison holds the folder...
+    code, _, err = main(monkeypatch, capsys, "compare", "compare-x", "--name", "x")
+    assert "Traceback" not in err  # ...and then no comparison is written into it
+    assert_clear_error(code, err[err.index("error: "):], "compare-x", "a run",
+                       "not a comparison's")
+    code, _, err = main(monkeypatch, capsys, "compare", "compare-x", "--name", "y")
+    assert code == 0, err
+    folder = tiny_scenario / "runs" / "compare-y"
+    assert (folder / "compare.json").is_file() and (folder / "report.md").is_file()
+    code, _, err = main(monkeypatch, capsys, "run", "tiny", "--run-id", "compare-y")
+    assert_clear_error(code, err[err.index("error: "):], str(folder), "comparison", "--run-id")
+    assert not (folder / "manifest.json").exists()

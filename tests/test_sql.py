@@ -281,6 +281,23 @@ def test_missing_and_locked_catalogues(project, tmp_path):
         query("SELECT 1", db="catalogue/bad.duckdb")
 
 
+def test_a_campaign_none_of_whose_runs_ran_is_read_without_a_catalogue(project):
+    """Every run invalid: no ingest run built the campaign's catalogue, and the project has none;
+    its own database (runs and their statuses) is still read, and listed alone."""
+    (project / "catalogue" / "craters.duckdb").unlink()
+    folder = project / "runs" / "mc"
+    folder.mkdir()
+    con = duckdb.connect(str(folder / "campaign.duckdb"))
+    con.execute("CREATE TABLE runs AS SELECT 0 AS run, 'invalid_config' AS status")
+    con.close()
+    assert query("SELECT status FROM campaign.runs", campaign="mc").split() == [
+        "status", "invalid_config"]
+    listing = query(None, campaign="mc")
+    assert "campaign.runs" in listing and "catalogue" not in listing.replace("campaign", "")
+    with pytest.raises(SqlSessionError, match="no catalogue database"):  # a run still needs one
+        query("SELECT 1", campaign="mc", db="catalogue/craters.duckdb")
+
+
 def test_a_catalogue_locked_by_a_writer_is_one_line(project):
     import subprocess
     import sys

@@ -68,7 +68,7 @@ from pipeline.engine.progress import console, progress_bar
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.io.catalogue import Catalogue, load_recorded_catalogue
 from pipeline.io.files import atomic_write_text
-from pipeline.io.store import RunStore
+from pipeline.io.store import COMPARE_MARKER, MANIFEST_FILE, RunStore, foreign_folder
 from pipeline.workspace import workspace
 
 # A task holds one CPU (Ray sets OMP_NUM_THREADS=1 for it): its libraries' thread pools too, so
@@ -165,10 +165,13 @@ def run_campaign(spec: CampaignSpec, *, address: str | None = None, workers: int
     from pipeline.stages import DAG
 
     paths = campaign_paths(spec)
-    if (paths.root / "manifest.json").is_file():
+    if (paths.root / MANIFEST_FILE).is_file():
         raise PipelineError(f"{paths.root}: the folder of an ordinary run (manifest.json), not a "
                             "campaign's (a sweep before sweeps were campaigns?); remove it or "
                             "give the campaign another name")
+    if foreign_folder(paths.root) == "comparison":
+        raise PipelineError(f"{paths.root}: the folder of a comparison ({COMPARE_MARKER}), not "
+                            "a campaign's; give the campaign another name")
     if not local:
         probe_ray_address(address)
     t0 = time.perf_counter()

@@ -29,6 +29,7 @@ WORLD_SIGMAS = ("catalogue_sigma_horizontal_m", "catalogue_sigma_height_m",
                 "catalogue_sigma_diameter_share", "site_map_sigma_horizontal_m",
                 "site_map_sigma_height_m", "site_map_relative_sigma_m")
 JITTER_RATE = "trajectory.jitter_rate_sigma_rad_s"
+RENDER_WINDOW = ("start_s", "end_s")  # the render section's fields that choose what is drawn
 
 
 def check_base(base: str, overrides: dict[str, Any], dispersions: tuple[Dispersion, ...],
@@ -115,6 +116,14 @@ def why_ignored(cfg: RunConfig, key: str, target: str, dispersed: set[str]) -> s
     if (key == "trajectory.jitter_seed" and cfg.trajectory.jitter_rate_sigma_rad_s == 0
             and JITTER_RATE not in dispersed):
         return f"{JITTER_RATE} = 0: the jitter's seed changes nothing"
+    if (section == "render" and name not in RENDER_WINDOW and cfg.render.start_s is None
+            and not dispersed & {f"render.{k}" for k in RENDER_WINDOW}):
+        return ("no frame is rendered (render.start_s and end_s unset): the renderer's options "
+                "change nothing")
+    if (section == "identification" and name != "mode" and cfg.identification.mode == "simulated"
+            and "identification.mode" not in dispersed):
+        return ("identification is simulated (identification.mode = 'simulated': a draw at "
+                "detection.p_identify): the algorithms' options change nothing")
     stages = [s for s in DAG.upstream_closure([target], cfg) if DAG.is_active(s, cfg)]
     for s in stages:
         for path in DAG[s].reads_for(cfg):

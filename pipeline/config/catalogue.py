@@ -12,6 +12,7 @@ from pipeline.config.checks import (
     MOON_DIAMETER_KM,
     _check,
     _num,
+    _written_path,
 )
 from pipeline.core.body import synthetic
 from pipeline.core.math.constants import MOON_RADIUS_M
@@ -41,10 +42,11 @@ class CatalogueConfig:
     site_seed: int  # the tier's generator seed
 
     def __post_init__(self) -> None:
-        for key in ("source", "format", "db_path"):
+        for key in ("source", "format"):
             value = getattr(self, key)
-            _check(bool(value.strip()) and "\0" not in value, f"catalogue.{key}",
-                   "must be a non-empty string")
+            _check(bool(value.strip()), f"catalogue.{key}", "must not be empty")
+            _check("\0" not in value, f"catalogue.{key}", "must not hold a NUL byte")
+        _written_path(self.db_path, "catalogue.db_path")
         _check(0 <= self.healpix_order <= 12, "catalogue.healpix_order",
                f"= {self.healpix_order}: must be in 0..12 (nside 1..4096)")
         if self.max_reject_share is not None:

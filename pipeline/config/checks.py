@@ -4,7 +4,9 @@ can sensibly ask for; plain names (run ids, scenarios)."""
 from __future__ import annotations
 
 import math
+import os
 import re
+from pathlib import Path
 from typing import Any
 
 from pipeline.core.math.constants import MOON_RADIUS_M
@@ -41,6 +43,17 @@ def _check(cond: bool, key: str, message: str) -> None:
     """A ConfigError `key: message` (or `key = value ...` for a message starting with "= ")."""
     if not cond:
         raise ConfigError(f"{key} {message}" if message.startswith("= ") else f"{key}: {message}")
+
+
+def _written_path(value: str, key: str) -> None:
+    """A path the pipeline writes to: not empty, no NUL byte, and when relative (after `~`
+    expands) under the project root it is taken from (an absolute path puts it elsewhere)."""
+    _check(bool(value.strip()), key, "must not be empty")
+    _check("\0" not in value, key, "must not hold a NUL byte")
+    path = Path(value).expanduser()
+    _check(path.is_absolute() or Path(os.path.normpath(path)).parts[:1] != ("..",), key,
+           f"= {value!r}: a relative path is under the project root; this one leaves it (give "
+           "an absolute path to keep it elsewhere)")
 
 
 def _fmt(value: Any) -> str:

@@ -3,11 +3,9 @@ navigator's side."""
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
-from pathlib import Path
 
-from pipeline.config.checks import _TRUTH, PROPAGATION_LIMIT_S, _check, _num
+from pipeline.config.checks import _TRUTH, PROPAGATION_LIMIT_S, _check, _num, _written_path
 from pipeline.config.inertial import IMU_GRADES
 from pipeline.vocab import METHODS
 
@@ -101,9 +99,4 @@ class IdentificationConfig:
         _num(self.query_detections, k + "query_detections", 3, 100)
         _num(self.min_matches, k + "min_matches", 4, 1000,
              why="a verifying pose needs 4 craters (3 give it no redundancy)")
-        _check(bool(self.index_dir.strip()), k + "index_dir", "must not be empty")
-        _check("\0" not in self.index_dir, k + "index_dir", "must not hold a NUL byte")
-        _check(Path(self.index_dir).is_absolute()
-               or not os.path.normpath(self.index_dir).startswith(".."), k + "index_dir",
-               f"= {self.index_dir!r}: a relative path is under the project root; this one "
-               "leaves it (give an absolute path to keep the indexes elsewhere)")
+        _written_path(self.index_dir, k + "index_dir")

@@ -61,7 +61,7 @@ class Session:
     """A locked-down connection: the catalogue as `craters`, the run's tables by name."""
 
     con: duckdb.DuckDBPyConnection
-    catalogue: Path
+    catalogue: Path | None  # None: a campaign's alone (none of its runs built one)
     run_id: str | None = None
     run_tables: dict[str, Path] = field(default_factory=dict)
     campaign: str | None = None
@@ -141,17 +141,23 @@ def open_session(run: str | None = None, db: str | Path | None = None,
         run_dir = check_run(run, ws.runs_dir)
         run_catalogue_db = run_catalogue(run_dir, ws)
         tables = run_tables(run, ws.runs_dir)
-    catalogue = ws.resolve(db) if db is not None else run_catalogue_db or ws.resolve(DEFAULT_DB)
-    if not catalogue.is_file():
-        used = f" (the catalogue run {run!r} used)" if db is None and run is not None else ""
-        raise SqlSessionError(f"{catalogue}: no catalogue database{used}; run `just ingest` first")
+    catalogue: Path | None = (ws.resolve(db) if db is not None
+                              else run_catalogue_db or ws.resolve(DEFAULT_DB))
+    if catalogue is not None and not catalogue.is_file():
+        if campaign_db is not None and db is None and run is None:
+            catalogue = None  # a campaign none of whose runs ran (all invalid): its tables alone
+        else:
+            used = f" (the catalogue run {run!r} used)" if db is None and run is not None else ""
+            raise SqlSessionError(f"{catalogue}: no catalogue database{used}; run `just ingest` "
+                                  "first")
     con = duckdb.connect(":memory:")
     try:
         con.execute("SET temp_directory = ''")  # nothing spills to (or may be written in) a folder
-        _attach(con, catalogue)
+        if catalogue is not None:
+            _attach(con, catalogue)
         if campaign_db is not None:
             _attach(con, campaign_db, CAMPAIGN_ALIAS)
-        con.execute(f"USE {CATALOGUE_ALIAS}")
+        con.execute(f"USE {CATALOGUE_ALIAS if catalogue is not None else CAMPAIGN_ALIAS}")
         for name, path in sorted(tables.items()):
             try:
                 con.register(name, pads.dataset(str(path), format="parquet"))
@@ -265,7 +271,8 @@ def run_query(query: str | None, run: str | None = None, db: str | None = None,
     session = open_session(run, db, campaign=campaign)
     try:
         if query is None:
-            title = (f"catalogue {session.catalogue}" + (f", run {run}" if run else "")
+            title = ((f"catalogue {session.catalogue}" if session.catalogue else "no catalogue")
+                     + (f", run {run}" if run else "")
                      + (f", campaign {campaign}" if campaign else ""))
             render(list_tables(session), fmt, out, terminal, max_rows=1_000_000, title=title)
         else:

@@ -55,7 +55,19 @@ class RunLockedError(PipelineError):
     """Another command holds the run's lock (and we were told not to wait)."""
 
 
-CAMPAIGN_MARKERS = ("spec.toml", "campaign.json")  # files of a campaign's folder
+MANIFEST_FILE = "manifest.json"  # a run's folder's
+# files that mark a folder of runs/ as no run's: what it is then
+FOLDER_MARKERS = {"spec.toml": "campaign", "campaign.json": "campaign",
+                  "compare.json": "comparison"}
+COMPARE_MARKER = "compare.json"
+
+
+def foreign_folder(folder: Path) -> str | None:
+    """What `folder` of runs/ is when it is another command's (a campaign's, a comparison's:
+    `FOLDER_MARKERS`) and no run's (no manifest); None otherwise."""
+    if (folder / MANIFEST_FILE).is_file():
+        return None
+    return next((kind for n, kind in FOLDER_MARKERS.items() if (folder / n).is_file()), None)
 
 
 class RunStore:
@@ -70,7 +82,7 @@ class RunStore:
 
     @property
     def manifest_path(self) -> Path:
-        return self.run_dir / "manifest.json"
+        return self.run_dir / MANIFEST_FILE
 
     @property
     def duckdb_path(self) -> Path:
@@ -218,15 +230,13 @@ class RunStore:
         return set(declared) <= set(drawn) and self._intact(stage, drawn)
 
     def _intact(self, stage: str, promised: dict[str, Any]) -> bool:
-        folder = self.stage_dir(stage)
-        for name, p_ in promised.items():
-            p = folder / name
-            try:
-                st = p.stat()
-            except OSError:
-                return False
-            if st.st_size != p_["bytes"] or sha256_file(p) != p_["sha256"]:
-                return False
+        """Every promised file as `_verify` wants it (a name inside the stage's folder, its size
+        and sha256): a stage that is not is run again, never trusted."""
+        try:
+            for name, p_ in promised.items():
+                self._verify(stage, name, p_)
+        except StageInputError:
+            return False
         return True
 
     # --- writing ---------------------------------------------------------------------------------
@@ -236,11 +246,12 @@ class RunStore:
         """Hold the run's lock (one command per run at a time); sweep dead leftovers inside.
 
         `wait=False` raises RunLockedError at once when another command holds it; otherwise wait,
-        saying once who holds it through `announce(line)`. A campaign's folder (its spec.toml or
-        campaign.json, no manifest) is refused: a run's stages never write into it."""
-        if not self.manifest_path.is_file() and any(
-                (self.run_dir / n).is_file() for n in CAMPAIGN_MARKERS):
-            raise StageInputError(f"{self.run_dir}: the folder of campaign {self.run_id!r}, not "
+        saying once who holds it through `announce(line)`. Another command's folder (a
+        campaign's, a comparison's: `foreign_folder`) is refused: a run's stages never write
+        into it."""
+        kind = foreign_folder(self.run_dir)
+        if kind is not None:
+            raise StageInputError(f"{self.run_dir}: the folder of {kind} {self.run_id!r}, not "
                                   "a run's; give the run another --run-id")
         self.run_dir.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.run_dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)

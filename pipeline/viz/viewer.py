@@ -65,14 +65,15 @@ def run_recordings(run: str, root: Path | None = None) -> tuple[Path, list[Path]
     if not store.manifest_path.is_file() and (store.run_dir / "campaign.parquet").is_file():
         return store.run_dir, sorted(p for p in store.run_dir.glob("*.rrd")
                                      if p.stat().st_size), None
-    facts_path = store.verified(lambda name: name == "catalogue.json").get("catalogue.json")
+    committed = store.verified()  # the whole run as committed, not only what is shown
+    facts_path = committed.get("catalogue.json")
     catalogue = None
     if facts_path is not None:
         recorded_catalogue_db(facts_path)  # still the run's catalogue, else a clear error
         catalogue = Path(recorded_facts(facts_path)["recording"])
         if not catalogue.is_file():
             catalogue = None
-    return store.run_dir, store.recordings(), catalogue
+    return store.run_dir, sorted(p for n, p in committed.items() if n.endswith(".rrd")), catalogue
 
 
 def viewer_args(files: list[Path], catalogue: Path | None = None) -> list[str]:
