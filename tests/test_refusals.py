@@ -79,6 +79,13 @@ def test_a_non_utf8_spec_is_one_line_naming_it(workdir, monkeypatch, capsys):
     assert_clear_error(code, err, str(path), "not UTF-8", "0xff")
 
 
+def test_a_non_utf8_scenario_is_one_line_naming_it(workdir, monkeypatch, capsys):
+    path = workdir / "runs" / "scenarios" / "bytes.toml"
+    path.write_bytes(b'extends = "default"\n# caf\xe9\n')
+    code, _, err = main(monkeypatch, capsys, "run", "bytes")
+    assert_clear_error(code, err, str(path), "not UTF-8", "0xe9", "offset 25")
+
+
 @pytest.mark.parametrize("section", ["identification.index_dir", "catalogue.db_path"])
 @pytest.mark.parametrize(("path", "why"), [
     ("catalogue/ix\0", "NUL"), ("../../elsewhere", "leaves it"), ("a/../../b", "leaves it"),

@@ -132,8 +132,11 @@ def _read_scenario(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
         data = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read the scenario: {exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at "
+                          f"offset {exc.start}); TOML is UTF-8") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the scenario: {exc.strerror or exc}") from None
     parent = data.pop("extends", None)
     try:
         _check_keys(RunConfig, data, "")
