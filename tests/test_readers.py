@@ -104,17 +104,24 @@ def test_readers_refuse_an_output_not_as_committed(here, monkeypatch, capsys, re
     assert_clear_error(code, err, target.name, run)
 
 
-def test_sql_does_not_register_an_output_outside_the_run(here, monkeypatch, capsys):
-    """A stage.json naming a file outside its folder, or a stage link pointing outside the run,
-    is refused before any table is registered (the lockdown comes after the registration)."""
-    secret = here / "secret.parquet"
-    shutil.copyfile(here / "runs" / "tiny" / "score" / "summary.parquet", secret)
-    folder = copy_run(here, "tiny", "r-escape")
+def run_naming_an_outside_file(project: Path, run: str, stem: str) -> tuple[Path, str]:
+    """A copy of `tiny` as `run` whose score stage.json also lists `<stem>.parquet` outside the
+    run (a copy of its summary, with the right size and sha256): the folder and that name."""
+    secret = project / f"{stem}.parquet"
+    shutil.copyfile(project / "runs" / "tiny" / "score" / "summary.parquet", secret)
+    folder = copy_run(project, "tiny", run)
     entry_path = folder / "score" / "stage.json"
     entry = json.loads(entry_path.read_text())
     name = os.path.relpath(secret, (folder / "score").resolve())
     entry["outputs"][name] = entry["outputs"]["summary.parquet"]
     entry_path.write_text(json.dumps(entry))
+    return folder, name
+
+
+def test_sql_does_not_register_an_output_outside_the_run(here, monkeypatch, capsys):
+    """A stage.json naming a file outside its folder, or a stage link pointing outside the run,
+    is refused before any table is registered (the lockdown comes after the registration)."""
+    run_naming_an_outside_file(here, "r-escape", "secret")
     code, _, err = main(monkeypatch, capsys, "sql", "--run", "r-escape",
                           "SELECT count(*) FROM secret")
     assert_clear_error(code, err, "stage.json", "not a file name")
@@ -143,14 +150,7 @@ def test_the_viewer_refuses_a_run_with_any_output_not_as_committed(here, monkeyp
 def test_a_stage_naming_an_output_outside_its_folder_is_run_again(here, monkeypatch, capsys):
     """`just run`'s freshness check holds the names as the readers do: a stage whose record
     names a file outside its folder is not fresh, and its new commit no longer names it."""
-    secret = here / "secret-run.parquet"
-    shutil.copyfile(here / "runs" / "tiny" / "score" / "summary.parquet", secret)
-    folder = copy_run(here, "tiny", "r-escape-run")
-    entry_path = folder / "score" / "stage.json"
-    entry = json.loads(entry_path.read_text())
-    name = os.path.relpath(secret, (folder / "score").resolve())
-    entry["outputs"][name] = entry["outputs"]["summary.parquet"]
-    entry_path.write_text(json.dumps(entry))
+    folder, name = run_naming_an_outside_file(here, "r-escape-run", "secret-run")
     code, _, err = main(monkeypatch, capsys, "run", "tiny", "--run-id", "r-escape-run")
     assert code == 0, err
     assert name not in json.loads((folder / "score" / "stage.json").read_text())["outputs"]

@@ -479,7 +479,7 @@ def gauss_newton(r0_mci_m: np.ndarray, q0_mci_from_body: np.ndarray, c_mci_m: np
         shs = _dot(step, grad)  # step^T I step, I step = g
         done = shs <= small_step_sigma * small_step_sigma
         if not done:
-            level = max_inv_sigma_bearing
+            level = max_inv_sigma_bearing  # `measurement.rounding_level`, in the loop
             rho_max = 0.0
             for j in range(rho_pred.size):
                 level = max(level, rho_pred[j] / sigma_range_m[j])
