@@ -56,10 +56,10 @@ class RunLockedError(PipelineError):
 
 
 MANIFEST_FILE = "manifest.json"  # a run's folder's
+COMPARE_MARKER = "compare.json"  # a comparison's folder's (`just compare`)
 # files that mark a folder of runs/ as no run's: what it is then
 FOLDER_MARKERS = {"spec.toml": "campaign", "campaign.json": "campaign",
-                  "compare.json": "comparison"}
-COMPARE_MARKER = "compare.json"
+                  COMPARE_MARKER: "comparison"}
 
 
 def foreign_folder(folder: Path) -> str | None:
