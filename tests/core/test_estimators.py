@@ -711,7 +711,10 @@ def test_closed_form_recovers_noiseless_position(n):
 def test_closed_form_bearings_resolve_the_great_circle_mirror():
     """Three craters on a great circle: their plane holds the Moon's centre, so the spacecraft
     and its mirror image across that plane are equally high and see the same ranges. Ranges
-    alone cannot tell them apart (one answer for both); the bearings can."""
+    alone cannot tell them apart (one answer for both); the bearings can. The paper's own
+    covariance here is far from linear (attitude 1-sigmas 1.3e-4, 1.4e-4 and 0.035 rad: the
+    widest's second order above the narrowest; with noise its mean NEES is ~280 for 6), so its
+    fix is `ill_conditioned` under the default checks; the linearity test off shows the pose."""
     rng = np.random.default_rng(85)
     r, dcm, _ = make_frame(rng, 1, alt_m=100e3)
     up = r / np.linalg.norm(r)
@@ -732,7 +735,8 @@ def test_closed_form_bearings_resolve_the_great_circle_mirror():
     assert min(np.linalg.norm(ranges_only - r), np.linalg.norm(ranges_only - mirror)) < 1e-3
     for truth, att, bearings in ((r, dcm, u), (mirror, dcm_mirror, u_mirror)):
         assert np.linalg.norm(est.closed_form_position(c, rho, bearings) - truth) < 1e-3
-        e = pose("paper", c, bearings, rho)
+        assert pose("paper", c, bearings, rho).status == "ill_conditioned"
+        e = pose("paper", c, bearings, rho, checks=est.CheckOptions(max_relative_sigma=np.inf))
         assert e.status == "ok" and np.linalg.norm(e.r_mci_m - truth) < 1e-6
         assert np.linalg.norm(att_error(att, e.q_mci_from_body)) < 1e-9
 
