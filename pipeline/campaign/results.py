@@ -39,7 +39,6 @@ import duckdb
 import numpy as np
 import polars as pl
 import pyarrow.parquet as pq
-from scipy import stats
 
 from pipeline.campaign.figures import NEES_DOF, PERCENTILES, figures, log_envelopes
 from pipeline.campaign.landing import FIGURE as LANDING_FIGURE
@@ -47,6 +46,7 @@ from pipeline.campaign.landing import landing_section
 from pipeline.campaign.paths import CampaignPaths, damaged_part, read_done
 from pipeline.campaign.report import report_text
 from pipeline.campaign.spec import CampaignSpec
+from pipeline.core.math import chi_square
 from pipeline.engine.progress import console
 
 TIMING_COLUMNS = ("wall_s", "node")  # vary from one execution to the next
@@ -189,8 +189,8 @@ def _with_nees_bounds(env: pl.DataFrame) -> pl.DataFrame:
     """The two-sided 95 % bounds of a mean of N position NEES values: chi2(3N)/N."""
     n = env["nees_runs"].to_numpy().astype(float)
     with np.errstate(invalid="ignore", divide="ignore"):
-        lo = np.where(n > 0, stats.chi2.ppf(0.025, NEES_DOF * n) / n, np.nan)
-        hi = np.where(n > 0, stats.chi2.ppf(0.975, NEES_DOF * n) / n, np.nan)
+        lo = np.where(n > 0, chi_square.quantile(0.025, NEES_DOF * n) / n, np.nan)
+        hi = np.where(n > 0, chi_square.quantile(0.975, NEES_DOF * n) / n, np.nan)
     return env.with_columns(nees_lo=pl.Series(lo), nees_hi=pl.Series(hi))
 
 

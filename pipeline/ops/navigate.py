@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
-from scipy.stats import chi2
 
+from pipeline.core.math import chi_square
 from pipeline.core.math.streams import stream
 from pipeline.core.navigation import eskf, filter
 from pipeline.core.navigation.eskf import ATT, BA, BG, N_STATES, POS, VEL, NavState
@@ -248,7 +248,8 @@ def navigation_table(records: list[filter.Record], truth: pl.DataFrame, dr: NavS
             sm_sigma[i] = np.sqrt(np.diag(rec.smoothed_p))[:9]
     status = np.where(np.arange(n) < start, Status.NOT_INITIALISED.value, Status.OK.value)
     refused = (counts[:, 1] > 0) & (counts[:, 1] > counts[:, 0])
-    bound = np.where(nis_dof > 0, chi2.isf(1.0 - consistency_probability, np.maximum(nis_dof, 1)),
+    bound = np.where(nis_dof > 0, chi_square.upper_quantile(
+        1.0 - consistency_probability, np.maximum(nis_dof, 1)),
                      np.inf)
     failed = refused | (nis > bound)
     # a failed test holds until updates pass it again (coasting proves nothing)

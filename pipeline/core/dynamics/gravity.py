@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
 from pipeline.core.math.constants import MOON_GM_M3_S2, MOON_RADIUS_M
 
 MOON_J2 = 2.0330e-4  # GRAIL GL0660B (Konopliv et al., JGR Planets 118, 2013), unnormalised
-GRAVITY_MODELS = ("point_mass", "j2")
+J2_OF_MODEL = {"point_mass": 0.0, "j2": MOON_J2}  # the J2 coefficient each model carries
+GRAVITY_MODELS = tuple(J2_OF_MODEL)
 
 
 def gravity_mci(r_mci_m: np.ndarray, model: str = "point_mass",
@@ -51,13 +53,20 @@ def gravity_xyz(x: float, y: float, z: float, model: str = "point_mass",
     """`gravity_mci` of one position given as Python floats (m), returned as floats (m/s^2):
     the same formulas for the world's step, where numpy's per-call cost on a (3,) array would
     dominate (~10x; `tests/core/test_powered.py` checks the two agree to 1e-15)."""
+    if model not in J2_OF_MODEL:
+        raise ValueError(f"unknown gravity model {model!r}, known {GRAVITY_MODELS}")
+    return gravity_components(x, y, z, gm_m3_s2, J2_OF_MODEL[model])
+
+
+@numba.njit(cache=True, nogil=True)
+def gravity_components(x: float, y: float, z: float, gm_m3_s2: float, j2: float
+                       ) -> tuple[float, float, float]:
+    """The acceleration (m/s^2, MCI) at (x, y, z) (m) with J2 coefficient j2 (0: the point mass,
+    bit for bit), compiled: called per step by the world's integrator and inside the strapdown
+    kernel (`pipeline.core.navigation.strapdown`)."""
     r2 = x * x + y * y + z * z
     k0 = -gm_m3_s2 / (r2 * math.sqrt(r2))
-    if model == "point_mass":
-        return k0 * x, k0 * y, k0 * z
-    if model == "j2":
-        z2_r2 = z * z / r2
-        k = -1.5 * MOON_J2 * gm_m3_s2 * MOON_RADIUS_M**2 / (r2 * r2 * math.sqrt(r2))
-        kxy = k * (1.0 - 5.0 * z2_r2)
-        return (k0 + kxy) * x, (k0 + kxy) * y, (k0 + k * (3.0 - 5.0 * z2_r2)) * z
-    raise ValueError(f"unknown gravity model {model!r}, known {GRAVITY_MODELS}")
+    z2_r2 = z * z / r2
+    k = -1.5 * j2 * gm_m3_s2 * MOON_RADIUS_M**2 / (r2 * r2 * math.sqrt(r2))
+    kxy = k * (1.0 - 5.0 * z2_r2)
+    return (k0 + kxy) * x, (k0 + kxy) * y, (k0 + k * (3.0 - 5.0 * z2_r2)) * z

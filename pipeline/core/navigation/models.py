@@ -24,6 +24,7 @@ import numpy as np
 
 from pipeline.core.body.surface import Sphere, Surface
 from pipeline.core.estimation import measurement
+from pipeline.core.math import chi_square
 from pipeline.core.math.constants import MOON_ROTATION_RATE_RAD_S
 from pipeline.core.math.frames import dcm_mci_from_mcmf
 from pipeline.core.math.rotations import dcm_from_q, q_log, q_multiply, skew
@@ -140,9 +141,7 @@ class Gates:
 
 @cache
 def _threshold(probability: float, dof: int) -> float:
-    from scipy.stats import chi2  # lazy: scipy.stats costs ~1 s to import
-
-    return float(chi2.ppf(probability, dof))
+    return float(chi_square.quantile(probability, dof))
 
 
 class MeasurementModel(Protocol):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 
+from pipeline.core.math import chi_square
 from pipeline.viz.rerun.base import send_scalars, time_columns
 from pipeline.viz.rerun.detection import _points3d
 from pipeline.viz.rerun.world import (
@@ -151,10 +152,8 @@ NEES_CONFIDENCE = 0.95
 
 def nees_band(dof: int = STATE_DIM, confidence: float = NEES_CONFIDENCE) -> tuple[float, float]:
     """Two-sided chi-square interval of one frame's NEES with `dof` degrees of freedom."""
-    from scipy.stats import chi2
-
     tail = (1.0 - confidence) / 2.0
-    return float(chi2.ppf(tail, dof)), float(chi2.ppf(1.0 - tail, dof))
+    return float(chi_square.quantile(tail, dof)), float(chi_square.quantile(1.0 - tail, dof))
 
 
 def log_scoring(rec: rr.RecordingStream, scores) -> None:

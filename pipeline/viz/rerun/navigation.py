@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import rerun as rr
 
+from pipeline.core.math import chi_square
 from pipeline.viz.rerun.estimation import (
     NEES_CONFIDENCE,
     REJECTED_COLOR,
@@ -141,15 +142,14 @@ def _send_reference(rec: rr.RecordingStream, base: str, grid: TimeGrid, dof: int
     """{base}/expected, chi2_lower, chi2_upper: the mean (dof) and the two-sided NEES_CONFIDENCE
     chi-square interval for `dof` (one value, or one per row of `grid`), divided by the dof if
     `per_dof`. A line that is constant carries its value in its name."""
-    from scipy.stats import chi2
-
     dof = np.broadcast_to(np.asarray(dof, dtype=float), grid.t_s.shape)
     norm = dof if per_dof else np.ones_like(dof)
     tail = (1.0 - NEES_CONFIDENCE) / 2.0
     pct = f"{NEES_CONFIDENCE:.0%}"
     for name, values, label in (("expected", dof / norm, "expected"),
-                                ("chi2_lower", chi2.ppf(tail, dof) / norm, f"chi2 {pct} lower"),
-                                ("chi2_upper", chi2.ppf(1.0 - tail, dof) / norm,
+                                ("chi2_lower", chi_square.quantile(tail, dof) / norm,
+                                 f"chi2 {pct} lower"),
+                                ("chi2_upper", chi_square.quantile(1.0 - tail, dof) / norm,
                                  f"chi2 {pct} upper")):
         if values.size and np.ptp(values) == 0.0:
             label = f"{label} ({values[0]:.3g})"

@@ -52,6 +52,7 @@ from pipeline.core.estimation.measurement import (
     normal_equations,
     per_crater,
 )
+from pipeline.core.math import chi_square
 from pipeline.core.math.rotations import dcm_from_q, q_exp, q_log, q_multiply
 from pipeline.core.scoring.status import Status
 
@@ -93,9 +94,7 @@ class CheckOptions:
 
 @cache
 def _chi2_threshold(probability: float, dof: int) -> float:
-    from scipy.stats import chi2  # lazy: scipy.stats costs ~1 s to import
-
-    return float(chi2.isf(1.0 - probability, dof))
+    return float(chi_square.upper_quantile(1.0 - probability, dof))
 
 
 def check_estimate(est: PoseEstimate, c_mci_m: np.ndarray, u_body: np.ndarray, rho_m: np.ndarray,

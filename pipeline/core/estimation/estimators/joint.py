@@ -34,6 +34,7 @@ from pipeline.core.estimation.measurement import (
     squared_normalised_residuals,
     whitened_system_from_los,
 )
+from pipeline.core.math import chi_square
 from pipeline.core.math.rotations import (
     dcm_from_q,
     positive_scalar,
@@ -282,9 +283,7 @@ class JointEstimator(Estimator):
 
 @cache
 def _chi2_isf(tail: float, dof: int) -> float:
-    from scipy.stats import chi2  # lazy: scipy.stats costs ~1 s to import
-
-    return float(chi2.isf(tail, dof))
+    return float(chi_square.upper_quantile(tail, dof))
 
 
 def _same_minimum(a: PoseEstimate, b: PoseEstimate) -> bool:

@@ -15,6 +15,7 @@ import numpy as np
 from pipeline.core.estimation.estimators.base import Estimator, PoseEstimate, failed
 from pipeline.core.estimation.estimators.bearings import absolute_orientation, crater_costs, p3p
 from pipeline.core.estimation.measurement import Sigma, per_crater, squared_normalised_residuals
+from pipeline.core.math import chi_square
 from pipeline.core.scoring.status import Status
 
 # RANSAC's consensus gate is the final chi-square gate widened by this factor in sigma: a 3-crater
@@ -43,9 +44,7 @@ class RobustOptions:
 def _chi2_gate(probability: float, dof: int = 3) -> float:
     """Chi-square quantile with `dof` (1 range + 2 bearing tangent; 2 without a range) at
     `probability`."""
-    from scipy.stats import chi2  # lazy: scipy.stats costs ~1 s to import
-
-    return float(chi2.ppf(probability, dof))
+    return float(chi_square.quantile(probability, dof))
 
 
 def chi2_gates(probability: float, rho_m: np.ndarray) -> float | np.ndarray:
