@@ -335,6 +335,18 @@ def test_imu_draw_has_the_configured_statistics() -> None:
     assert np.std(white) == pytest.approx(1e-2 * np.sqrt(dt), rel=0.02)
 
 
+def test_gauss_markov_recursion_is_the_digital_filter_bit_for_bit() -> None:
+    """The bias recursion against scipy.signal.lfilter, the filter it replaces (same draws, same
+    tables before and after)."""
+    from scipy.signal import lfilter
+
+    w = np.random.default_rng(5).standard_normal((50_000, 3))
+    for a in (0.5, 0.9998, 1.0 - 1e-7):
+        b = 3e-4 * np.sqrt(1.0 - a * a)
+        np.testing.assert_array_equal(imu._first_order_recursion(w, b, a),
+                                      lfilter([b], [1.0, -a], w, axis=0))
+
+
 def test_a_start_kilometres_off_converges_without_overconfidence() -> None:
     """Started 1.5 km off (3 sigma of a 500 m prior) ~10 km above the ground with 20 craters a
     frame: the iterated crater update relinearises, so after the first frames the error lies
