@@ -308,3 +308,20 @@ def test_detect_frame_reads_only_the_rows_of_the_spatial_query(field):
     reads = [n for g in (guarded.crater_id, guarded.diam_km, guarded.r_mcmf_m,
                          guarded.index.unit) for n in g.reads]
     assert reads and max(reads) <= tile_rows < field.crater_id.size / 10
+
+
+def test_frame_streams_are_the_frame_sequences_children_whatever_is_made_first() -> None:
+    """Each purpose's generator is child n of the frame's SeedSequence (what `spawn` gives), made
+    on first use: the draws do not depend on which purposes a sensor asks for, or in what order."""
+    from pipeline.core.math.streams import seed_sequence
+    from pipeline.core.sensors.detection import FRAME_STREAMS
+
+    ss = seed_sequence(42, "detection", 1234)
+    spawned = dict(zip(FRAME_STREAMS, ss.spawn(len(FRAME_STREAMS)), strict=True))
+    rngs = frame_rngs(42, 1234)
+    for name in reversed(FRAME_STREAMS):
+        expected = np.random.Generator(np.random.PCG64(spawned[name])).standard_normal(4)
+        np.testing.assert_array_equal(rngs[name].standard_normal(4), expected)
+    assert rngs["noise"] is rngs["noise"]  # one generator per purpose: its draws go on
+    with pytest.raises(KeyError):
+        rngs["weather"]

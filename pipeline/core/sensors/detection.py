@@ -128,14 +128,34 @@ class FrameDetections:
         return (self.matched_row >= 0) & (self.row != self.matched_row)
 
 
+FRAME_STREAMS = ("identify", "match", "select", "noise", "detect", "false", "star", "verify")
+
+
+class FrameStreams(dict):
+    """A frame's generators by purpose (FRAME_STREAMS), each made on first use: the n-th purpose
+    is child n of the frame's SeedSequence (`SeedSequence.spawn`'s children), so a generator
+    draws the same whether or not the others were made (seeding one costs ~40 us, and most
+    frames use half of them)."""
+
+    def __init__(self, seed: int, frame: int) -> None:
+        super().__init__()
+        self._parent = seed_sequence(seed, "detection", frame)
+
+    def __missing__(self, name: str) -> np.random.Generator:
+        if name not in FRAME_STREAMS:
+            raise KeyError(name)
+        ss = self._parent
+        child = np.random.SeedSequence(ss.entropy, pool_size=ss.pool_size, spawn_key=(
+            *ss.spawn_key, FRAME_STREAMS.index(name)))
+        self[name] = generator = np.random.Generator(np.random.PCG64(child))
+        return generator
+
+
 def frame_rngs(seed: int, frame: int) -> dict[str, np.random.Generator]:
     """Independent generators of one frame: identify, match, select, noise; the physical
     sensor's detect and false detections; identification's star tracker and verification (later
     children of the same SeedSequence: the earlier ones are unchanged)."""
-    ss = seed_sequence(seed, "detection", frame)
-    names = ("identify", "match", "select", "noise", "detect", "false", "star", "verify")
-    return {n: np.random.Generator(np.random.PCG64(s))
-            for n, s in zip(names, ss.spawn(len(names)), strict=True)}
+    return FrameStreams(seed, frame)
 
 
 def detect_frame(model: DetectionModel, craters: CraterArrays, r_mcmf_m: np.ndarray,
