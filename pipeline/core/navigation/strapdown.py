@@ -10,7 +10,8 @@ second order and implicit in r_k; a segment of samples is solved at once: the at
 running product of quaternions, the positions by a Picard iteration that contracts by
 ~(GM / r^3) T^2 / 2 per pass over a segment of T seconds. The segment is a compiled loop
 (Numba, cached beside this module): the filter mechanises ~100 samples per step and the vectorised
-numpy form spent ~1 ms a step on ~60 small array operations, this ~15 us.
+numpy form spent ~1 ms a step on ~60 small array operations, this ~20 us (~30 us with the
+call; its first compilation ~4 s once per machine).
 
 Gravity models: `pipeline.core.dynamics.gravity` (`point_mass`, the truth's, and `j2`), re-exported
 here; a navigator may use a model that differs from the world's.
@@ -95,9 +96,8 @@ def _segment(r0: np.ndarray, v0: np.ndarray, q0: np.ndarray, dtheta: np.ndarray,
              dv: np.ndarray, dt: np.ndarray, gm_m3_s2: float, j2: float, tol_m: float,
              a: int, b: int, r: np.ndarray, v: np.ndarray, q: np.ndarray) -> None:
     """Samples a..b-1 of r, v, q from the state before sample a (r0, v0, q0 when a = 0, else
-    sample a - 1's): the attitudes and rotated
-    velocity increments in one pass, then Picard passes on the positions (at most
-    MAX_PICARD_PASSES, until no position moves more than tol_m)."""
+    sample a - 1's): the attitudes and rotated velocity increments in one pass, then Picard
+    passes on the positions (at most MAX_PICARD_PASSES, until none moves more than tol_m)."""
     n = b - a
     dv_mci = np.empty((n, 3))
     if a > 0:
