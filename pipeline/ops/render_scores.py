@@ -12,7 +12,6 @@ from typing import Any
 
 import numpy as np
 import polars as pl
-from scipy.optimize import minimize
 
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.io.tables import reduced
@@ -279,6 +278,8 @@ def calibrate_detectability(truth: pl.DataFrame, base: sensor.Detectability,
                 kw["incidence_fall_deg"] = (float(p[0]), float(min(p[0] + p[1], 90.0)))
         return replace(base, **kw)
 
+    from scipy import optimize  # lazy: ~0.1 s, for the calibration's fit only
+
     def nll(x: np.ndarray) -> float:
         p = sensor.detection_probability(diam, inc_rad, emi_rad, image_side_px, unpack(x))
         p = np.clip(p, 1e-9, 1.0 - 1e-9)
@@ -289,7 +290,7 @@ def calibrate_detectability(truth: pl.DataFrame, base: sensor.Detectability,
     for _ in range(2):  # a restart from the optimum renews a collapsed simplex
         fits = (x + step >= lo) & (x + step <= hi)
         simplex = np.vstack([x, x + np.diag(np.where(fits, step, -step))])
-        res = minimize(nll, x, method="Nelder-Mead", bounds=bounds,
+        res = optimize.minimize(nll, x, method="Nelder-Mead", bounds=bounds,
                        options={"initial_simplex": np.clip(simplex, lo, hi), "xatol": 1e-3,
                                 "fatol": 1e-3, "maxiter": 3000})
         x = res.x

@@ -7,7 +7,6 @@ import io
 from pathlib import Path
 
 import numpy as np
-from matplotlib.figure import Figure
 from PIL import Image
 
 from pipeline.io.images import decode_png
@@ -60,6 +59,8 @@ def contact_sheet(path: Path, frame: list[int], t_s: list[float], frames: list[n
     pick = (sorted(set(np.linspace(0, len(frames) - 1, count).astype(int).tolist()))
             if frames else [])
     n = max(len(pick), 1)
+    from matplotlib.figure import Figure  # lazy: only the render stage's sheet draws one
+
     fig = Figure(figsize=(4.2 * n, 4.6))
     axes = fig.subplots(1, n, squeeze=False)[0]
     for ax, i in zip(axes, pick, strict=False):

@@ -23,7 +23,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from pipeline.core.math.streams import stream
 
@@ -55,6 +54,8 @@ class FractalNoise:
         n_oct = max(int(np.floor(np.log2(outer_m / min_wavelength_m))) + 1, 1)
         lam = outer_m / 2.0 ** np.arange(n_oct)
         rng = stream(seed, "terrain_roughness")
+        from scipy.spatial.transform import Rotation  # lazy: ~0.1 s, terrain runs only
+
         rot = Rotation.random(n_oct, random_state=rng).as_matrix()
         noise = cls(lam, (lam / outer_m) ** hurst, rot, rng.uniform(0, 1024, (n_oct, 3)),
                     rng.integers(0, 2**63, n_oct, dtype=np.uint64))

@@ -26,13 +26,16 @@ craters whose footprint holds them straight from the trees (`relief_at`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from pipeline.core.body import crater_shape
 from pipeline.core.math.streams import stream
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 LOLA_CL_AMPLITUDE_M2 = 4.3e6  # degree variance fit C_l = A l^-beta to the LOLA DEM (l = 5-250)
 LOLA_CL_SLOPE = 2.14
@@ -187,6 +190,8 @@ class CraterField:
         self._shape = crater_depth_rim_m(self.diam_m, floor_fraction)  # (depth, rim, floor)
         depth, rim, _ = self._shape  # fresh: the bounds
         self.rim_max_m, self.depth_max_m = float(rim.max()), float(depth.max())
+        from scipy.spatial import cKDTree  # lazy: ~0.1 s, for terrain runs only
+
         k = np.floor(np.log2(self.diam_m)).astype(np.int64)
         for kv in np.unique(k):
             rows = np.flatnonzero(k == kv)
@@ -233,6 +238,8 @@ class CraterField:
         class's craters against the points that ask it), then the (point, crater) pairs whose
         footprint holds the point."""
         out = np.zeros(u.shape[0])
+        from scipy.spatial import cKDTree
+
         pt_parts, row_parts = [], []
         points: cKDTree | None = None  # over the points, for the dual-tree pair search
         for c in self.classes:

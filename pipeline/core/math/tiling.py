@@ -4,13 +4,15 @@ Crater rows are sorted by their HEALPix nested tile, so the rows of one tile are
 asks healpy for the tiles that overlap a spherical cap or a convex spherical polygon (`inclusive`
 mode, a superset), gathers their rows and keeps those that pass the exact test: the result equals a
 brute-force scan with the same test. Vectors are unit vectors (any frame, MCMF for craters).
+
+healpy is imported where a tile is computed or queried, not with this module: its import brings
+matplotlib and astropy (~2 s), which the stages that never query (imu, estimate, navigate) skip.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import healpy as hp
 import numpy as np
 
 
@@ -21,6 +23,8 @@ def nside_of(order: int) -> int:
 
 def tile_of(unit: np.ndarray, order: int) -> np.ndarray:
     """Nested HEALPix index (int64) at `order` of unit vectors (..., 3)."""
+    import healpy as hp
+
     u = np.asarray(unit, dtype=float)
     return np.asarray(hp.vec2pix(nside_of(order), u[..., 0], u[..., 1], u[..., 2], nest=True),
                       dtype=np.int64)
@@ -100,6 +104,8 @@ def in_polygon(unit: np.ndarray, normals: np.ndarray) -> np.ndarray:
 
 def cap_tiles(center: np.ndarray, radius_rad: float, order: int) -> np.ndarray:
     """Nested tiles that overlap the cap (a superset), ascending."""
+    import healpy as hp
+
     c = np.asarray(center, dtype=float)
     return np.asarray(hp.query_disc(nside_of(order), c / np.linalg.norm(c), radius_rad,
                                     inclusive=True, nest=True), dtype=np.int64)
@@ -107,6 +113,8 @@ def cap_tiles(center: np.ndarray, radius_rad: float, order: int) -> np.ndarray:
 
 def polygon_tiles(vertices: np.ndarray, order: int) -> np.ndarray:
     """Nested tiles that overlap the convex polygon (a superset), ascending."""
+    import healpy as hp
+
     v = np.asarray(vertices, dtype=float)
     return np.asarray(hp.query_polygon(nside_of(order), v / np.linalg.norm(v, axis=1)[:, None],
                                        inclusive=True, nest=True), dtype=np.int64)

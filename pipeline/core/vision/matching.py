@@ -31,12 +31,8 @@ from dataclasses import dataclass
 from itertools import pairwise
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
-from scipy.special import chdtri
 
+from pipeline.core.math import chi_square
 from pipeline.core.math.rotations import dcm_from_q, q_exp
 from pipeline.core.sensors import conics
 
@@ -222,13 +218,19 @@ def associate(y_det_px: np.ndarray, cov_det_px2: np.ndarray, pred: PredictedRims
     confidence: for a match, L_ij / (clutter_density + sum_j' L_ij') over the detection's gated
     candidates (L the Gaussian densities, px^-5); for no match, clutter_density / (the same sum)
     (1 when nothing is gated). It ignores that rivals may be taken by other detections."""
+    # lazy: scipy.optimize and scipy.spatial (~0.3 s) for identification by tracking only
+    from scipy.optimize import linear_sum_assignment
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
     y_det = np.asarray(y_det_px, dtype=float)
     cov_det = np.asarray(cov_det_px2, dtype=float)
     n, k = y_det.shape[0], pred.rows.size
     candidate, d2_out, conf = np.full(n, -1), np.full(n, np.nan), np.ones(n)
     if n == 0 or k == 0:
         return Association(candidate, d2_out, conf)
-    gate = float(chdtri(5, 1.0 - gate_probability))
+    gate = float(chi_square.upper_quantile(1.0 - gate_probability, 5))
 
     # coarse gate on the centres (k-d trees, the largest radius, then each pair's bound), then
     # the full 5-d gate on the survivors

@@ -6,12 +6,13 @@ import json
 
 from pipeline.ops.score import identification_by_detections
 from pipeline.viz.draw import Drawing, table
-from pipeline.viz.report import run_report
 from pipeline.viz.rerun import estimation, layout
 
 
 def record_score(ctx: Drawing) -> None:
     """The scores' recording, the viewer's layout file and report.md with its figures."""
+    from pipeline.viz.report import run_report  # lazy: matplotlib, for this stage's figures only
+
     cfg = ctx.cfg
     scores = table(ctx, "scores.parquet")
     with layout.recording(ctx.store.run_id, ctx.output("scoring.rrd")) as rec:

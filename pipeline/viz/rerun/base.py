@@ -6,7 +6,6 @@ from __future__ import annotations
 import uuid
 from pathlib import Path
 
-import matplotlib
 import numpy as np
 import rerun as rr
 
@@ -55,5 +54,7 @@ def send_scalars(rec: rr.RecordingStream, entity: str, frame: np.ndarray, t_s: n
 
 def diameter_colors(diam_km: np.ndarray) -> np.ndarray:
     """RGB (uint8) of crater diameters on a log scale (viridis, 1 km dark to 100+ km yellow)."""
+    import matplotlib  # lazy: ~0.2 s, for the catalogue's recording only
+
     x = np.clip(np.log10(np.maximum(diam_km, 1e-3)) / 2.0, 0.0, 1.0)
     return (matplotlib.colormaps["viridis"](x)[:, :3] * 255).astype(np.uint8)
