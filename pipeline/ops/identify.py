@@ -6,7 +6,7 @@ navigator's (`pipeline.core.navigation.navigator.identify_frames`).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 import polars as pl
@@ -58,7 +58,7 @@ def pixel_sensing(model: DetectionModel, pixel: pl.DataFrame, frame: np.ndarray,
         "true_ellipse_u_px", "true_ellipse_v_px", "true_semi_major_px", "true_semi_minor_px",
         "true_ellipse_angle_rad")}
 
-    def sense(i: int, rngs: dict[str, np.random.Generator]) -> Sensed:
+    def sense(i: int, rngs: Mapping[str, np.random.Generator]) -> Sensed:
         a, b = int(at[0, i]), int(at[1, i])
         col = {c: v[a:b] for c, v in columns.items()}
         centre = np.column_stack([col["ellipse_u_px"], col["ellipse_v_px"]])

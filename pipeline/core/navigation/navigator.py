@@ -28,7 +28,7 @@ and the verifying pose uses the bearings and the apparent-size ranges (a ranging
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -147,7 +147,7 @@ class Navigator:
 
     def camera_frame(self, t_s: float, frame: int, theta_rad: float, s: Sensed,
                      r_mcmf_true_m: np.ndarray, dcm_body_from_mcmf_true: np.ndarray,
-                     sun_mcmf_m: np.ndarray, rngs: dict[str, np.random.Generator],
+                     sun_mcmf_m: np.ndarray, rngs: Mapping[str, np.random.Generator],
                      v_rough_mci_m_s: np.ndarray) -> FrameResult:
         """One frame's identification of the reported detections `s` at the filter's time t_s
         (s) (the filter predicted there by `coast`), the filter's update or restart, and the

@@ -9,6 +9,7 @@ noise do not depend on the cap, the selection strategy or the processing order.
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -131,27 +132,34 @@ class FrameDetections:
 FRAME_STREAMS = ("identify", "match", "select", "noise", "detect", "false", "star", "verify")
 
 
-class FrameStreams(dict):
+class FrameStreams(Mapping[str, np.random.Generator]):
     """A frame's generators by purpose (FRAME_STREAMS), each made on first use: the n-th purpose
     is child n of the frame's SeedSequence (`SeedSequence.spawn`'s children), so a generator
     draws the same whether or not the others were made (seeding one costs ~40 us, and most
     frames use half of them)."""
 
     def __init__(self, seed: int, frame: int) -> None:
-        super().__init__()
         self._parent = seed_sequence(seed, "detection", frame)
+        self._made: dict[str, np.random.Generator] = {}
 
-    def __missing__(self, name: str) -> np.random.Generator:
-        if name not in FRAME_STREAMS:
-            raise KeyError(name)
-        ss = self._parent
-        child = np.random.SeedSequence(ss.entropy, pool_size=ss.pool_size, spawn_key=(
-            *ss.spawn_key, FRAME_STREAMS.index(name)))
-        self[name] = generator = np.random.Generator(np.random.PCG64(child))
-        return generator
+    def __getitem__(self, name: str) -> np.random.Generator:
+        if name not in self._made:
+            if name not in FRAME_STREAMS:
+                raise KeyError(name)
+            ss = self._parent
+            child = np.random.SeedSequence(ss.entropy, pool_size=ss.pool_size, spawn_key=(
+                *ss.spawn_key, FRAME_STREAMS.index(name)))
+            self._made[name] = np.random.Generator(np.random.PCG64(child))
+        return self._made[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(FRAME_STREAMS)
+
+    def __len__(self) -> int:
+        return len(FRAME_STREAMS)
 
 
-def frame_rngs(seed: int, frame: int) -> dict[str, np.random.Generator]:
+def frame_rngs(seed: int, frame: int) -> FrameStreams:
     """Independent generators of one frame: identify, match, select, noise; the physical
     sensor's detect and false detections; identification's star tracker and verification (later
     children of the same SeedSequence: the earlier ones are unchanged)."""
@@ -160,7 +168,7 @@ def frame_rngs(seed: int, frame: int) -> dict[str, np.random.Generator]:
 
 def detect_frame(model: DetectionModel, craters: CraterArrays, r_mcmf_m: np.ndarray,
                  dcm_body_from_mcmf: np.ndarray, altitude_m: float,
-                 rngs: dict[str, np.random.Generator],
+                 rngs: Mapping[str, np.random.Generator],
                  sun_mcmf_m: np.ndarray | None = None,
                  world: sensor.World | None = None) -> FrameDetections:
     """Detection model of one frame at spacecraft position r_mcmf_m (3,) and attitude; the
@@ -249,7 +257,7 @@ def world_in_view(model: DetectionModel, craters: CraterArrays, world: sensor.Wo
 
 def sense_physical(model: DetectionModel, craters: CraterArrays, world: sensor.World,
                    r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
-                   rngs: dict[str, np.random.Generator], sun_mcmf_m: np.ndarray,
+                   rngs: Mapping[str, np.random.Generator], sun_mcmf_m: np.ndarray,
                    shadows: illumination.TerrainShadows | None = None) -> SensedFrame:
     """The physical sensor's detections of one frame: true rims (the world, not the catalogue)
     imaged as ellipses, detected by size and lighting (draws of rngs["detect"]), measured with
@@ -351,7 +359,7 @@ def measure_physical(phys: PhysicalSensor, meas: sensor.EllipseMeasurement,
 
 def _detect_physical(model: DetectionModel, phys: PhysicalSensor, craters: CraterArrays,
                      world: sensor.World, r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
-                     rngs: dict[str, np.random.Generator], sun_mcmf_m: np.ndarray
+                     rngs: Mapping[str, np.random.Generator], sun_mcmf_m: np.ndarray
                      ) -> FrameDetections:
     """The physical sensor's frame identified by the coin flip (`identification.identify`)."""
     s = sense_physical(model, craters, world, r_mcmf_m, dcm_body_from_mcmf, rngs, sun_mcmf_m)

@@ -7,7 +7,7 @@ scoring. `Sensing` is a frame's sensing by frame index and streams; `model_sensi
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,12 +41,12 @@ class Sensed:
     n_shadowed: int = 0  # candidates detected but for the terrain's shadow
 
 
-Sensing = Callable[[int, dict[str, np.random.Generator]], Sensed]  # frame index, its streams
+Sensing = Callable[[int, Mapping[str, np.random.Generator]], Sensed]  # frame index, its streams
 
 
 def sense_frame(model: DetectionModel, false_detection_share: float, seen: CraterArrays,
                 world: sensor.World, r_mcmf_m: np.ndarray, dcm_body_from_mcmf: np.ndarray,
-                sun_mcmf_m: np.ndarray, rngs: dict[str, np.random.Generator],
+                sun_mcmf_m: np.ndarray, rngs: Mapping[str, np.random.Generator],
                 shadows: TerrainShadows | None = None) -> Sensed:
     """The physical sensor model's detections (`sense_physical`) of the world (`seen`, its
     craters with the catalogue errors `world`) from one true pose r_mcmf_m (3,) (m),
@@ -79,7 +79,7 @@ def model_sensing(model: DetectionModel, false_detection_share: float, seen: Cra
     world = sensor.world_craters(seen.r_mcmf_m, seen.diam_km * 1e3, seen.crater_id,
                                  phys.catalogue_errors, phys.world_seed)
 
-    def sense(i: int, rngs: dict[str, np.random.Generator]) -> Sensed:
+    def sense(i: int, rngs: Mapping[str, np.random.Generator]) -> Sensed:
         return sense_frame(model, false_detection_share, seen, world, r_mcmf_m[i],
                            dcm_body_from_mcmf[i], sun_mcmf_m[i], rngs)
 
