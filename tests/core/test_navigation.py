@@ -364,3 +364,35 @@ def test_a_start_kilometres_off_converges_without_overconfidence() -> None:
     err = _errors(records, x_true)
     for e, r in zip(err[2:], records[2:], strict=True):
         assert filter.nees(e[POS], r.p[POS, POS]) < chi2.ppf(0.9999, 3)
+
+
+def test_iterated_crater_update_from_sums_is_the_update_of_the_whole_system() -> None:
+    """The iterated update summed crater by crater against the same iteration on the (N, 4, 6)
+    whitened system (`crater_system`, `information_update`), from a start 400 m and 0.2 mrad
+    off, some ranges missing: the same correction to a thousandth of the iteration's own stop
+    (IEKF_STEP_TOL; the two sums round differently, through an I + A P of condition ~1e8), the
+    same covariance and first-pass NIS to 1e-8."""
+    from pipeline.core.navigation import models
+
+    rng = np.random.default_rng(8)
+    grade = navsim.white_only()
+    x_true = navsim.at(navsim.truth(np.array([2500.0])), 0)
+    m = navsim.crater_frames(rng, np.array([2500.0]), 40)[0]
+    m = replace(m, rho_m=np.where(np.arange(40) % 5 == 0, np.nan, m.rho_m))
+    x0, p0 = navsim.initial(rng, x_true, grade, sigma_pos_m=400.0, sigma_att_rad=2e-4)
+    opts = navsim.options(grade)
+    got = models.iterated_crater_update(x0, p0, m, opts)
+    dx, first, up = np.zeros(eskf.N_STATES), None, None
+    for _ in range(models.IEKF_MAX_ITERATIONS):
+        e, j, _ = models.crater_system(eskf.inject(x0, dx), m, opts)
+        e, j = e.reshape(-1), j.reshape(-1, 6)
+        up = eskf.information_update(p0, eskf.POSE, e + j @ dx[eskf.POSE], j)
+        first = first or up
+        step, dx = up.dx - dx, up.dx
+        if np.linalg.norm(step[:3]) < models.IEKF_STEP_TOL:
+            break
+    assert np.linalg.norm(got.dx[:3]) > 100.0  # it corrected the 400 m start
+    np.testing.assert_allclose(got.dx[:3], up.dx[:3], rtol=0, atol=1e-3 * models.IEKF_STEP_TOL)
+    np.testing.assert_allclose(got.dx[3:], up.dx[3:], rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(got.p, up.p, rtol=1e-8, atol=1e-12 * np.abs(p0).max())
+    assert got.nis == pytest.approx(first.nis, rel=1e-8)

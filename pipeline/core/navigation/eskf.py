@@ -142,10 +142,16 @@ class Update:
 def information_update(p: np.ndarray, subset: np.ndarray, e_white: np.ndarray,
                        j_white: np.ndarray) -> Update:
     """Kalman update of P (15, 15) by whitened residuals e (m,) and Jacobians J (m, k) over the
-    error states `subset` (k,): P+ = P - P_x W P_x^T with W = (I + A P_s)^-1 A, A = J^T J,
-    dx = P+_x J^T e, NIS = e^T e - b^T P_s (I + A P_s)^-1 b with b = J^T e."""
-    a = j_white.T @ j_white
-    b = j_white.T @ e_white
+    error states `subset` (k,): `sums_update` of A = J^T J, b = J^T e and e^T e."""
+    return sums_update(p, subset, j_white.T @ j_white, j_white.T @ e_white,
+                       float(e_white @ e_white))
+
+
+def sums_update(p: np.ndarray, subset: np.ndarray, a: np.ndarray, b: np.ndarray, ete: float
+                ) -> Update:
+    """Kalman update of P (15, 15) from a whitened system's sums over the error states
+    `subset` (k,): A = J^T J (k, k), b = J^T e (k,) and e^T e: P+ = P - P_x W P_x^T with
+    W = (I + A P_s)^-1 A, dx = P+_x b, NIS = e^T e - b^T P_s (I + A P_s)^-1 b."""
     p_x = p[:, subset]
     p_s = p_x[subset]
     m = np.eye(subset.size) + a @ p_s
@@ -153,7 +159,7 @@ def information_update(p: np.ndarray, subset: np.ndarray, e_white: np.ndarray,
     p_new = p - p_x @ w @ p_x.T
     p_new = 0.5 * (p_new + p_new.T)
     dx = p_new[:, subset] @ b
-    nis = float(e_white @ e_white - b @ (p_s @ np.linalg.solve(m, b)))
+    nis = float(ete - b @ (p_s @ np.linalg.solve(m, b)))
     return Update(dx, p_new, nis)
 
 

@@ -328,14 +328,22 @@ def iterated_crater_update(x: NavState, p: np.ndarray, m: CraterFrame, opts: Fil
                            ) -> eskf.Update:
     """The crater update (`CraterModel`): with J_i, e_i at the iterate x_i = x + dx_i, the
     update of the linearised system e_i + J_i dx_i, until a step moves the position less than
-    IEKF_STEP_TOL."""
+    IEKF_STEP_TOL. Its sums J^T J, J^T (e + J dx) = J^T e + J^T J dx and, on the first pass
+    (dx = 0, the NIS), e^T e come from `measurement.normal_equations` (summed crater by crater,
+    compiled), not from the (N, 4, 6) system."""
+    ok = usable(m)
+    sigma_b = opts.sigma_bearing if m.sigma_bearing is None else measurement.per_crater(
+        m.sigma_bearing, ok)
+    sigma_r = opts.sigma_range_m if m.sigma_range_m is None else measurement.per_crater(
+        m.sigma_range_m, ok)
+    f = measurement.frame(m.c_mci_m[ok], m.u_body[ok], m.rho_m[ok], sigma_b, sigma_r)
     dx = np.zeros(eskf.N_STATES)
     first: eskf.Update | None = None
     up = None
     for _ in range(IEKF_MAX_ITERATIONS):
-        e, j, _ = crater_system(eskf.inject(x, dx), m, opts)
-        e, j = e.reshape(-1), j.reshape(-1, 6)
-        up = eskf.information_update(p, POSE, e + j @ dx[POSE], j)
+        xi = eskf.inject(x, dx)
+        ne = measurement.normal_equations(xi.r_mci_m, dcm_from_q(xi.q_mci_from_body), f)
+        up = eskf.sums_update(p, POSE, ne.info, ne.gradient + ne.info @ dx[POSE], ne.cost)
         first = first or up
         step = up.dx - dx
         dx = up.dx
