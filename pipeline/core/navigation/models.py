@@ -331,11 +331,7 @@ def iterated_crater_update(x: NavState, p: np.ndarray, m: CraterFrame, opts: Fil
     IEKF_STEP_TOL. Its sums J^T J, J^T (e + J dx) = J^T e + J^T J dx and, on the first pass
     (dx = 0, the NIS), e^T e come from `measurement.normal_equations` (summed crater by crater,
     compiled), not from the (N, 4, 6) system."""
-    ok = usable(m)
-    sigma_b = opts.sigma_bearing if m.sigma_bearing is None else measurement.per_crater(
-        m.sigma_bearing, ok)
-    sigma_r = opts.sigma_range_m if m.sigma_range_m is None else measurement.per_crater(
-        m.sigma_range_m, ok)
+    ok, sigma_b, sigma_r = _usable_rows(m, opts)
     f = measurement.frame(m.c_mci_m[ok], m.u_body[ok], m.rho_m[ok], sigma_b, sigma_r)
     dx = np.zeros(eskf.N_STATES)
     first: eskf.Update | None = None
@@ -370,16 +366,24 @@ def subset(m: CraterFrame, keep: np.ndarray) -> CraterFrame:
                        pick(m.sigma_bearing), pick(m.sigma_range_m))
 
 
-def crater_system(x: NavState, m: CraterFrame, opts: FilterOptions
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Whitened residuals (N, 4) and Jacobians (N, 4, 6) over [dr, dtheta] of a frame's craters
-    (the shared measurement model) and each one's degrees of freedom (3, or 2 without a range);
-    rows with a non-finite position or bearing, or an infinite range, dropped (`usable`)."""
+def _usable_rows(m: CraterFrame, opts: FilterOptions
+                 ) -> tuple[np.ndarray, measurement.Sigma, measurement.Sigma]:
+    """The frame's usable rows (`usable`) and their bearing and range noise (the frame's own,
+    else the filter's)."""
     ok = usable(m)
     sigma_b = opts.sigma_bearing if m.sigma_bearing is None else measurement.per_crater(
         m.sigma_bearing, ok)
     sigma_r = opts.sigma_range_m if m.sigma_range_m is None else measurement.per_crater(
         m.sigma_range_m, ok)
+    return ok, sigma_b, sigma_r
+
+
+def crater_system(x: NavState, m: CraterFrame, opts: FilterOptions
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Whitened residuals (N, 4) and Jacobians (N, 4, 6) over [dr, dtheta] of a frame's craters
+    (the shared measurement model) and each one's degrees of freedom (3, or 2 without a range);
+    rows with a non-finite position or bearing, or an infinite range, dropped (`usable`)."""
+    ok, sigma_b, sigma_r = _usable_rows(m, opts)
     e, j, _ = measurement.whitened_system(
         x.r_mci_m, x.q_mci_from_body, m.c_mci_m[ok], m.u_body[ok], m.rho_m[ok],
         sigma_bearing=sigma_b, sigma_range_m=sigma_r)
