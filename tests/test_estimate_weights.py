@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.core.estimation.estimators import DEFAULT_CHECKS, estimate_pose
+from pipeline.core.estimation.estimators import CheckOptions, estimate_pose
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors.rim_sensor import CatalogueErrors, PixelErrors, SensorNoise
 from pipeline.ops.estimate import EstimateOptions, UsedCraters, estimate_all
@@ -59,9 +59,16 @@ def _nees(r: np.ndarray, cov: np.ndarray, r_true: np.ndarray) -> float:
     return float(e @ np.linalg.solve(cov[:3, :3], e))
 
 
+# The position's consistency is the question here, so the fixes are judged by the one-step
+# residual test: the default test steps on to the ML pose and also judges the paper's attitude
+# covariance, too narrow in this geometry (it flags 37 of the 60 reweighed fixes; the 23 left
+# have a position NEES of 2.3)
+ONE_STEP = CheckOptions(ml_steps=0)
+
+
 def test_reweighed_paper_fixes_are_consistent_and_weighed_at_the_measured_ranges_are_not():
     craters, r_true = _frames()
-    opts = EstimateOptions(("paper",), SIGMA_PX / F_PX, 1.0, 1e-6, 30, None, DEFAULT_CHECKS,
+    opts = EstimateOptions(("paper",), SIGMA_PX / F_PX, 1.0, 1e-6, 30, None, ONE_STEP,
                            None, NOISE)
     table = estimate_all(craters, opts, seed=1)
     ok = (table["status"] == "ok").to_numpy()
@@ -75,7 +82,8 @@ def test_reweighed_paper_fixes_are_consistent_and_weighed_at_the_measured_ranges
         a, b = craters.start[i], craters.start[i + 1]
         sb, sr = craters.sigmas(a, b, (SIGMA_PX / F_PX, 1.0), NOISE)
         est = estimate_pose("paper", craters.c_mci_m[a:b], craters.u_body[a:b],
-                            craters.rho_m[a:b], sigma_bearing=sb, sigma_range_m=sr)
+                            craters.rho_m[a:b], sigma_bearing=sb, sigma_range_m=sr,
+                            checks=ONE_STEP)
         if est.status == "ok":
             once.append(_nees(est.r_mci_m, est.cov, r_true))
     # 3 dof: a consistent estimator's mean NEES is 3 (its standard error here ~0.5)

@@ -9,7 +9,6 @@ import polars as pl
 
 from pipeline.config import RunConfig
 from pipeline.core.estimation.estimators import CheckOptions, RobustOptions
-from pipeline.core.estimation.estimators.checks import ML_STEPS
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors.rim_sensor import PixelErrors
 from pipeline.engine.progress import progress_bar
@@ -47,8 +46,7 @@ def options(cfg: RunConfig, calibrated: PixelErrors | None = None) -> EstimateOp
         sigma_bearing=sigma_bearing, sigma_range_m=sigma_range_m,
         step_tol_m=e.step_tol_m, max_iterations=e.max_iterations, robust=robust,
         checks=CheckOptions(consistency_probability=e.consistency_probability,
-                            max_condition=e.max_condition, moon_radius_m=MOON_RADIUS_M,
-                            ml_steps=0 if noise is None else ML_STEPS),
+                            max_condition=e.max_condition, moon_radius_m=MOON_RADIUS_M),
         cap=d.max_craters, sensor_noise=noise)
 
 

@@ -55,3 +55,30 @@ def test_one_step_misses_wide_paper_fixes_the_iterated_test_does_not():
     assert beyond1 >= 0.15 * ok1  # the one-step test lets a sixth through
     assert beyond_n <= 0.05 * ok_n
     assert ok_n - beyond_n >= 0.9 * (ok1 - beyond1)  # the consistent fixes stay ok
+
+
+def test_a_three_crater_paper_fix_far_from_the_ml_is_not_ok():
+    """The sweep's seed 3, frame 2914 (8.5-10 km from 3 craters, the paper's sensor: 1e-4 rad,
+    10 m): the one-step test passed it `ok` with a NEES of 94.7 for 6 in the sweep; stepped on
+    to the ML pose (the default), its distance from the ML exceeds the 6-dof bound."""
+    c = np.array([[1171168.7456484595, 1240586.2848091756, 328432.9446927948],
+                  [1170661.060316478, 1241176.7173482822, 328011.88724075624],
+                  [1167541.4056020288, 1243654.5461130154, 329741.104712877]])
+    u = np.array([[-0.48720260705137164, 0.38421968189024736, 0.784225003255127],
+                  [-0.42207367600463347, 0.44363161657835676, 0.7905977490456252],
+                  [0.0034337084521839515, 0.395489983237901, 0.9184638712571933]])
+    rho = np.array([10023.34302273522, 9911.511772792208, 8529.531719946415])
+    r_true = np.array([1172832.3047718208, 1248371.0000324135, 334500.0013131184])
+    q_true = np.array([-0.21926638949972738, -0.7401043487896601, 0.5679020407468999,
+                       0.2857535222073274])
+
+    def fix(checks: CheckOptions) -> est.PoseEstimate:
+        return est.estimate_pose("paper", c, u, rho, sigma_bearing=1e-4, sigma_range_m=10.0,
+                                 checks=checks)
+
+    one_step = fix(CheckOptions(ml_steps=0))
+    assert one_step.status == "ok"
+    err = np.concatenate([one_step.r_mci_m - r_true, q_log(q_multiply(
+        np.array([-q_true[0], -q_true[1], -q_true[2], q_true[3]]), one_step.q_mci_from_body))])
+    assert float(err @ np.linalg.solve(one_step.cov, err)) > chi2.isf(1e-6, 6)
+    assert fix(CheckOptions()).status == "inconsistent"

@@ -21,6 +21,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from pipeline.core.math import rotation_kernels
+
 
 @numba.njit(cache=True, nogil=True)
 def normal_sums(r_mci_m: np.ndarray, dcm_mci_from_body: np.ndarray, c_mci_m: np.ndarray,
@@ -201,14 +203,11 @@ def _lu_solve(m: np.ndarray, b: np.ndarray) -> tuple[bool, np.ndarray]:
 @numba.njit(cache=True, nogil=True)
 def _dcm_from_q(q: np.ndarray) -> np.ndarray:
     """`rotations.dcm_from_q` of one scalar-last quaternion (4,) (normalised first)."""
-    nq = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    x, y, z, w = q[0] / nq, q[1] / nq, q[2] / nq, q[3] / nq
-    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
-    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    m = rotation_kernels.dcm_entries(q[0], q[1], q[2], q[3])
     out = np.empty((3, 3))
-    out[0, 0], out[0, 1], out[0, 2] = x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)
-    out[1, 0], out[1, 1], out[1, 2] = 2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)
-    out[2, 0], out[2, 1], out[2, 2] = 2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2
+    out[0, 0], out[0, 1], out[0, 2] = m[0], m[1], m[2]
+    out[1, 0], out[1, 1], out[1, 2] = m[3], m[4], m[5]
+    out[2, 0], out[2, 1], out[2, 2] = m[6], m[7], m[8]
     return out
 
 
@@ -362,19 +361,15 @@ def planar_pose(c_mci_m: np.ndarray, u_body: np.ndarray, passes: int
 @numba.njit(cache=True, nogil=True)
 def _q_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """`rotations.q_multiply` of two scalar-last quaternions (4,)."""
-    x1, y1, z1, w1 = p[0], p[1], p[2], p[3]
-    x2, y2, z2, w2 = q[0], q[1], q[2], q[3]
-    return np.array([w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2, w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                     w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2])
+    x, y, z, w = rotation_kernels.q_multiply(p[0], p[1], p[2], p[3], q[0], q[1], q[2], q[3])
+    return np.array([x, y, z, w])
 
 
 @numba.njit(cache=True, nogil=True)
 def _q_exp(theta: np.ndarray) -> np.ndarray:
     """`rotations.q_exp` of one rotation vector (3,) (rad)."""
-    angle = np.sqrt(theta[0] * theta[0] + theta[1] * theta[1] + theta[2] * theta[2])
-    half = 0.5 * angle
-    k = np.sin(half) / angle if angle > 1e-4 else 0.5 - angle * angle / 48.0
-    return np.array([k * theta[0], k * theta[1], k * theta[2], np.cos(half)])
+    x, y, z, w = rotation_kernels.q_exp(theta[0], theta[1], theta[2])
+    return np.array([x, y, z, w])
 
 
 @numba.njit(cache=True, nogil=True)

@@ -13,6 +13,9 @@ import math
 
 import numpy as np
 
+# below this angle (rad) q_exp takes sin(a / 2) / a as its series 1/2 - a^2 / 48 (error < 1e-19)
+Q_EXP_SERIES_ANGLE_RAD = 1e-4
+
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a x b for broadcast (..., 3) arrays, written out: np.cross costs ~10x more on the small
@@ -86,14 +89,13 @@ def q_exp(theta_rad: np.ndarray) -> np.ndarray:
     if theta_rad.ndim > 1:
         angle = np.sqrt(np.einsum("...i,...i->...", theta_rad, theta_rad))
         half = 0.5 * angle
-        small = angle <= 1e-4
+        small = angle <= Q_EXP_SERIES_ANGLE_RAD
         k = np.where(small, 0.5 - angle * angle / 48.0,
                      np.sin(half) / np.where(small, 1.0, angle))
         return np.concatenate([k[..., None] * theta_rad, np.cos(half)[..., None]], axis=-1)
     angle = math.sqrt(float(theta_rad @ theta_rad))
     half = 0.5 * angle
-    # sin(a/2)/a -> 1/2 - a^2/48 below 1e-4 rad (error < 1e-19)
-    k = math.sin(half) / angle if angle > 1e-4 else 0.5 - angle * angle / 48.0
+    k = math.sin(half) / angle if angle > Q_EXP_SERIES_ANGLE_RAD else 0.5 - angle * angle / 48.0
     return np.array([k * theta_rad[0], k * theta_rad[1], k * theta_rad[2], math.cos(half)])
 
 

@@ -19,7 +19,6 @@ here; a navigator may use a model that differs from the world's.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numba
@@ -33,6 +32,7 @@ from pipeline.core.dynamics.gravity import (
     gravity_gradient,
     gravity_mci,
 )
+from pipeline.core.math import rotation_kernels
 from pipeline.core.math.constants import MOON_GM_M3_S2
 
 __all__ = ["GRAVITY_MODELS", "MAX_SEGMENT_S", "MOON_J2", "Trajectory", "gravity_gradient",
@@ -111,19 +111,10 @@ def _segment(r0: np.ndarray, v0: np.ndarray, q0: np.ndarray, dtheta: np.ndarray,
         c0 = b0 + 0.5 * (a1 * b2 - a2 * b1)
         c1 = b1 + 0.5 * (a2 * b0 - a0 * b2)
         c2 = b2 + 0.5 * (a0 * b1 - a1 * b0)
-        norm = math.sqrt(x * x + y * y + z * z + w * w)
-        nx, ny, nz, nw = x / norm, y / norm, z / norm, w / norm
-        x2, y2, z2, w2 = nx * nx, ny * ny, nz * nz, nw * nw
-        xy, zw, xz, yw, yz, xw = nx * ny, nz * nw, nx * nz, ny * nw, ny * nz, nx * nw
-        dv_mci[j, 0] = (x2 - y2 - z2 + w2) * c0 + 2 * (xy - zw) * c1 + 2 * (xz + yw) * c2
-        dv_mci[j, 1] = 2 * (xy + zw) * c0 + (-x2 + y2 - z2 + w2) * c1 + 2 * (yz - xw) * c2
-        dv_mci[j, 2] = 2 * (xz - yw) * c0 + 2 * (yz + xw) * c1 + (-x2 - y2 + z2 + w2) * c2
-        # q (x) Exp(dtheta); sin(a/2)/a -> 1/2 - a^2/48 below 1e-4 rad (error < 1e-19)
-        angle = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-        s = math.sin(0.5 * angle) / angle if angle > 1e-4 else 0.5 - angle * angle / 48.0
-        ex, ey, ez, ew = s * a0, s * a1, s * a2, math.cos(0.5 * angle)
-        x, y, z, w = (w * ex + x * ew + y * ez - z * ey, w * ey - x * ez + y * ew + z * ex,
-                      w * ez + x * ey - y * ex + z * ew, w * ew - x * ex - y * ey - z * ez)
+        dv_mci[j, 0], dv_mci[j, 1], dv_mci[j, 2] = rotation_kernels.rotate(x, y, z, w, c0, c1, c2)
+        # q (x) Exp(dtheta)
+        ex, ey, ez, ew = rotation_kernels.q_exp(a0, a1, a2)
+        x, y, z, w = rotation_kernels.q_multiply(x, y, z, w, ex, ey, ez, ew)
         q[k, 0], q[k, 1], q[k, 2], q[k, 3] = x, y, z, w
     # first guess: constant gravity
     g0 = gravity_components(r0[0], r0[1], r0[2], gm_m3_s2, j2)
