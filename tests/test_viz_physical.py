@@ -169,8 +169,8 @@ def rgba(color: tuple[int, ...]) -> int:
     return (r << 24) | (g << 16) | (b << 8) | (a[0] if a else 255)
 
 
-OLD_ENTITIES = {CAM, f"{CAM}/visible", f"{CAM}/used", "/world/frustum", "/world/footprint",
-                "/world/moon/visible", "/world/moon/used", "/world/moon/false_matches",
+OLD_ENTITIES = {CAM, f"{CAM}/unused", f"{CAM}/used", "/world/frustum", "/world/footprint",
+                "/world/moon/unused", "/world/moon/used", "/world/moon/false_matches",
                 "/counts/candidates", "/counts/visible", "/counts/identified", "/counts/used",
                 "/detection/d_min_km"}
 NEW_ENTITIES = {rerun_sun.SUN_ENTITY, rerun_sun.SUNLIGHT_ENTITY,
@@ -331,11 +331,12 @@ def test_paper_detections_keep_the_old_entities_only(paper_rrd, physical_rrd):
 
 def test_camera_points_are_crater_discs_without_ellipses_and_dots_with_them(paper_rrd,
                                                                            physical_rrd):
-    entity = f"{CAM}/visible"
-    det = detections_table(False)
+    entity = f"{CAM}/unused"
+    det = detections_table(False).filter(~pl.col("used"))
     disc_px = (det["diam_km"] * 500.0 / det["rho_meas_m"]).to_numpy() * model().k[0, 0]
     paper = [r for frame_radii in columns(paper_rrd, entity)[f"{entity}:Points2D:radii"]
              for r in frame_radii]
+    assert len(paper) > 0
     np.testing.assert_allclose(paper, disc_px, rtol=1e-6)  # scene units: the crater's size
     dots = [r for frame_radii in columns(physical_rrd, entity)[f"{entity}:Points2D:radii"]
             for r in frame_radii]
@@ -366,12 +367,13 @@ def test_no_nan_reaches_the_recording_from_false_detections(tmp_path):
     with layout.recording("r", path) as rec:
         detection.log_detection(rec, model(), trajectory_table(), det,
                                 frames_table(det, sun=True))
-    for entity, kind in (("/world/moon/visible", "Points3D"), ("/world/moon/used", "Points3D"),
-                         (f"{CAM}/visible", "Points2D")):
+    for entity, kind in (("/world/moon/unused", "Points3D"), ("/world/moon/used", "Points3D"),
+                         (f"{CAM}/unused", "Points2D")):
         cols = columns(path, entity)
         for part in ("radii", "positions"):
             values = np.array([v for row in cols[f"{entity}:{kind}:{part}"] for v in row],
                               dtype=float)
             assert values.size and np.isfinite(values).all(), (entity, part)
-    visible = columns(path, "/world/moon/visible")["/world/moon/visible:Points3D:positions"]
-    assert sum(len(row) for row in visible) == det.height - int(false.sum())
+    unused = columns(path, "/world/moon/unused")["/world/moon/unused:Points3D:positions"]
+    real_unused = ~false & ~det["used"].to_numpy()
+    assert sum(len(row) for row in unused) == int(real_unused.sum())

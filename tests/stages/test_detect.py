@@ -425,20 +425,24 @@ def test_detection_rrd_holds_the_promised_entities(runs):
         assert sorted(series) == frame_ids
         np.testing.assert_array_equal([series[i][0] for i in frame_ids], f[column])
 
+    f = f.with_columns(n_unused=pl.col("n_visible") - pl.col("n_used"))  # each crater once
     for entity, archetype, column in (
-            ("/world/moon/visible", "Points3D", "n_visible"),
+            ("/world/moon/unused", "Points3D", "n_unused"),
             ("/world/moon/used", "Points3D", "n_used"),
-            ("/world/spacecraft/camera/visible", "Points2D", "n_visible"),
+            ("/world/spacecraft/camera/unused", "Points2D", "n_unused"),
             ("/world/spacecraft/camera/used", "Points2D", "n_used")):
         points = per_frame(entity, f"{archetype}:positions")
         counts = [len(points.get(i, [])) for i in frame_ids]
         np.testing.assert_array_equal(counts, f[column])
 
-    pixels = per_frame("/world/spacecraft/camera/visible", "Points2D:positions")
     busiest = int(f["frame"][int(f["n_visible"].arg_max())])
     rows = d.filter(pl.col("frame") == busiest)
-    np.testing.assert_allclose(np.array(pixels[busiest]),
-                               rows.select("pixel_u", "pixel_v").to_numpy(), rtol=1e-6)
+    for entity, used in (("unused", False), ("used", True)):
+        pixels = per_frame(f"/world/spacecraft/camera/{entity}", "Points2D:positions")
+        np.testing.assert_allclose(
+            np.array(pixels[busiest]),
+            rows.filter(pl.col("used") == used).select("pixel_u", "pixel_v").to_numpy(),
+            rtol=1e-6)
 
     # Frustum: four limit lines per frame from the spacecraft to the Moon; footprint: a closed ring.
     r_mci = xyz(run.trajectory, "r_mci_", "_m")

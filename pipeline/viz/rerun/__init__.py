@@ -12,7 +12,8 @@ Entity tree (3D in MCI, metres):
     /world                          MCI (Z up)
     /world/moon                     Transform3D MCI-from-MCMF, Rz(theta_m(t))
     /world/moon/surface, /craters   the Moon sphere and every catalogue crater (static, MCMF)
-    /world/moon/visible, /used      craters seen (where they are) and used (where their match is)
+    /world/moon/used, /unused       craters used (where their match is) and the other visible ones
+                                    (where they are); the camera's 2D points likewise
     /world/moon/false_matches       used craters matched to a wrong catalogue crater
     /world/moon/rejected/<method>   craters a robust estimator rejected
     /world/path                     the true trajectory

@@ -53,11 +53,11 @@ def _points2d(rec: rr.RecordingStream, entity: str, times, positions: np.ndarray
 
 
 def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames_table) -> None:
-    """Camera (Pinhole) with the synthetic view, frustum limit lines and footprint, visible and
-    used craters per frame, and the counts. With the Sun's columns in `frames_table`, the Sun
-    (`log_sun`); with the physical sensor's rim ellipses in `detections`, the ellipses
-    (`log_rim_ellipses`), and the camera view's crater points become dots at the bearings (the
-    ellipses show the craters' size)."""
+    """Camera (Pinhole) with the synthetic view, frustum limit lines and footprint, the used
+    craters and the other visible ones (`unused`) per frame, and the counts. With the Sun's
+    columns in `frames_table`, the Sun (`log_sun`); with the physical sensor's rim ellipses in
+    `detections`, the ellipses (`log_rim_ellipses`), and the camera view's crater points become
+    dots at the bearings (the ellipses show the craters' size)."""
     from pipeline.core.math import frames
     from pipeline.core.sensors import camera
     from pipeline.io.tables import quats, xyz
@@ -120,7 +120,10 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
     real = np.isfinite(seen_mcmf).all(axis=1) & np.isfinite(radius_m)
     placed = np.isfinite(c_mcmf).all(axis=1) & np.isfinite(radius_m)
     on_image = np.isfinite(pixel).all(axis=1)
-    _points3d(rec, "/world/moon/visible", times, seen_mcmf[real], radius_m[real], per_frame(real),
+    # each crater drawn once: the used ones where their match is, the other visible ones where
+    # they are (a used crater logged twice doubled the recording: 16.5 MB of the default's)
+    sel = real & ~used
+    _points3d(rec, "/world/moon/unused", times, seen_mcmf[sel], radius_m[sel], per_frame(sel),
               VISIBLE_COLOR)
     sel = used & placed
     _points3d(rec, "/world/moon/used", times, c_mcmf[sel], radius_m[sel], per_frame(sel),
@@ -130,8 +133,9 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
         _points3d(rec, "/world/moon/false_matches", times, c_mcmf[sel], radius_m[sel],
                   per_frame(sel), FALSE_MATCH_COLOR)
     cam = "/world/spacecraft/camera"
-    _points2d(rec, f"{cam}/visible", times, pixel[on_image], radius_px[on_image],
-              per_frame(on_image), VISIBLE_COLOR)
+    sel = on_image & ~used
+    _points2d(rec, f"{cam}/unused", times, pixel[sel], radius_px[sel], per_frame(sel),
+              VISIBLE_COLOR)
     sel = used & on_image
     _points2d(rec, f"{cam}/used", times, pixel[sel], radius_px[sel], per_frame(sel), USED_COLOR)
 
