@@ -281,7 +281,7 @@ def compare(
     for run in runs:
         store = RunStore(validate_run_id(run))
         need = ("frames.parquet", "scores.parquet", "navigation.parquet", "summary.parquet",
-                "navigation_summary.parquet", "detections.parquet")
+                "navigation_summary.parquet", "detections.parquet", "trajectory.parquet")
         try:
             paths = {n: store.path(n) for n in need}  # each as its stage committed it
         except PipelineError as exc:
@@ -301,7 +301,8 @@ def compare(
                                        tables["navigation.parquet"]))
         windows.append(cmp.window_rows(run, tables["summary.parquet"],
                                        tables["navigation_summary.parquet"]))
-        bias = cmp.centre_bias(run, tables["detections.parquet"], k)
+        bias = cmp.centre_bias(run, tables["detections.parquet"], tables["trajectory.parquet"],
+                               k)
         if bias is not None:
             biases.append(bias)
     folder = workspace().runs_dir / validate_run_id(f"compare-{name or '_'.join(runs)}")

@@ -19,6 +19,7 @@ from pipeline.campaign.results import TIMING_COLUMNS, read_table
 from pipeline.campaign.spec import load_spec
 from pipeline.core.sensors.imu import GRADES
 from pipeline.errors import ConfigError, PipelineError
+from pipeline.ops import detect
 
 DISPERSIONS = """
 [dispersions]
@@ -126,7 +127,9 @@ def test_each_dispersion_reaches_its_run(workdir: Path, catalogue_db: Path):
         nav = pl.read_parquet(paths.runs / rid / "navigate" / "navigation.parquet")
         assert nav.height and np.isfinite(nav["err_pos_x_m"].to_numpy()).any()
         # the measurements carry the drawn noise: range and bearing errors' spread
-        det = pl.read_parquet(paths.runs / rid / "detect" / "detections.parquet").filter(
+        det = detect.with_truth(
+            pl.read_parquet(paths.runs / rid / "detect" / "detections.parquet"),
+            pl.read_parquet(paths.runs / rid / "trajectory" / "trajectory.parquet")).filter(
             pl.col("identified"))
         range_err = (det["rho_meas_m"] - det["rho_true_m"]).to_numpy()
         assert abs(np.std(range_err) / drawn["detection.sigma_range_m"] - 1) < 0.1, rid
@@ -428,8 +431,9 @@ def test_the_built_in_world_jitter_and_mounting_reach_their_runs(workdir: Path,
         cfg = load_config(str(paths.scenario(rid)), rid)
         assert cfg.detection.world_seed == spec.draws(i)["detection.world_seed"]
         assert cfg.estimation.assumed_camera_mounting_deg == (0.0, 0.0, 0.0)
-        det = pl.read_parquet(paths.runs / rid / "detect" / "detections.parquet")
         traj = pl.read_parquet(paths.runs / rid / "trajectory" / "trajectory.parquet")
+        det = detect.with_truth(
+            pl.read_parquet(paths.runs / rid / "detect" / "detections.parquet"), traj)
         runs.append((cfg, det, traj))
     # the worlds: the true range to the same crater in the same frame differs by the errors
     keys = ["frame", "crater_id"]

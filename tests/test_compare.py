@@ -38,7 +38,7 @@ def test_compare_writes_the_report_of_a_paper_and_a_physical_run(workdir, catalo
 
 
 def test_centre_bias_is_none_without_ellipses_and_binned_with_them():
-    assert compare.centre_bias("x", pl.DataFrame({"u_true_body_x": [0.0]}), None) is None
+    assert compare.centre_bias("x", pl.DataFrame({"c_true_mcmf_x_m": [0.0]}), None, None) is None
 
 
 @pytest.mark.parametrize("args", [("compare", "nowhere"), ("compare", "../escape")])

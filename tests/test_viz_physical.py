@@ -15,7 +15,7 @@ import pytest
 import rerun as rr
 from test_viz import blueprint_columns, columns, views
 
-from pipeline.core.math import rotations
+from pipeline.core.math import frames, rotations
 from pipeline.core.sensors import camera, conics
 from pipeline.core.sensors.detection import DetectionModel
 from pipeline.viz.rerun import base, detection, ellipses, layout
@@ -75,15 +75,17 @@ def detections_table(physical: bool) -> pl.DataFrame:
     u_body = np.column_stack([rng.uniform(-0.2, 0.2, (n, 2)), np.ones(n)])
     u_body /= np.linalg.norm(u_body, axis=1, keepdims=True)
     identified, used, false = (np.array(c) for c in zip(*FLAGS, strict=True))
+    c_mci = rng.normal(0, 10e3, (n, 3)) + np.array([0.0, 0.0, R_MOON])
+    c_mcmf = frames.mcmf_from_mci(c_mci, trajectory_table()["theta_m_rad"].to_numpy()[frame])
     table = pl.DataFrame({
         "frame": frame.astype(np.int32), "t_s": frame * 10.0,
         "det_index": (np.arange(n) - first).astype(np.int32),
         "crater_id": np.arange(n, dtype=np.int64), "diam_km": rng.uniform(2, 20, n),
         "matched_id": np.arange(n, dtype=np.int64) + 1000 * false,
-        **{f"c_mci_{c}_m": rng.normal(0, 10e3, n) + (R_MOON if c == "z" else 0) for c in "xyz"},
-        **{f"u_true_body_{c}": u_body[:, i] for i, c in enumerate("xyz")},
+        **{f"c_mci_{c}_m": c_mci[:, i] for i, c in enumerate("xyz")},
+        **{f"c_true_mcmf_{c}_m": c_mcmf[:, i] for i, c in enumerate("xyz")},
         **{f"u_meas_body_{c}": u_body[:, i] for i, c in enumerate("xyz")},
-        "rho_true_m": np.full(n, 90e3), "rho_meas_m": np.full(n, 90e3),
+        "rho_meas_m": np.full(n, 90e3),
         "pixel_u": rng.uniform(100, 900, n), "pixel_v": rng.uniform(100, 900, n),
         "identified": identified, "used": used, "false_match": false})
     if not physical:
@@ -101,10 +103,7 @@ def detections_table(physical: bool) -> pl.DataFrame:
         true_ellipse_angle_rad=angle, apparent_diam_px=2 * a, rho_size_m=np.full(n, 9e4),
         incidence_deg=np.full(n, 60.0), emission_deg=np.full(n, 10.0),
         phase_deg=np.full(n, 70.0), p_detect=np.full(n, 0.9),
-        true_diam_km=table["diam_km"].to_numpy() * 1.01,
-        c_true_mcmf_x_m=table["c_mci_x_m"].to_numpy(),
-        c_true_mcmf_y_m=table["c_mci_y_m"].to_numpy(),
-        c_true_mcmf_z_m=table["c_mci_z_m"].to_numpy())
+        true_diam_km=table["diam_km"].to_numpy() * 1.01)
 
 
 def sun_directions() -> np.ndarray:
@@ -355,14 +354,15 @@ def test_layout_has_the_sun_and_gsd_plots_without_new_origins(tmp_path):
 
 
 def test_no_nan_reaches_the_recording_from_false_detections(tmp_path):
-    """A false detection has no true crater (NaN size, true range and position): its points are
+    """A false detection has no true crater (NaN size and true point): its points are
     left out of the 3D views, its camera dot drawn at the UI size; no NaN is logged (the viewer
     warned "Found NaN radius in entity /world/moon/visible")."""
     det = detections_table(True)
     false = np.arange(det.height) % 5 == 0
     det = det.with_columns(
         diam_km=pl.when(pl.Series(false)).then(np.nan).otherwise(pl.col("diam_km")),
-        rho_true_m=pl.when(pl.Series(false)).then(np.nan).otherwise(pl.col("rho_true_m")))
+        **{c: pl.when(pl.Series(false)).then(np.nan).otherwise(pl.col(c))
+           for c in ("c_true_mcmf_x_m", "c_true_mcmf_y_m", "c_true_mcmf_z_m")})
     path = tmp_path / "detection.rrd"
     with layout.recording("r", path) as rec:
         detection.log_detection(rec, model(), trajectory_table(), det,

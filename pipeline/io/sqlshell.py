@@ -39,10 +39,13 @@ from pipeline.io.sql_guard import (
     translate_error,
 )
 from pipeline.io.sql_print import FORMATS, Result, render
+from pipeline.io.store import detections_view
 from pipeline.workspace import Workspace, workspace
 
 DEFAULT_DB = "catalogue/craters.duckdb"
 CATALOGUE_ALIAS = "craters"
+# the detections table as stored; `detections` is the view that adds the truth's bearing and range
+STORED_DETECTIONS = "detections_stored"
 CAMPAIGN_ALIAS = "campaign"  # `--campaign NAME`: runs/NAME/campaign.duckdb, tables campaign.<t>
 
 LOCKDOWN = ("SET enable_external_access = false", "SET autoinstall_known_extensions = false",
@@ -158,12 +161,20 @@ def open_session(run: str | None = None, db: str | Path | None = None,
         if campaign_db is not None:
             _attach(con, campaign_db, CAMPAIGN_ALIAS)
         con.execute(f"USE {CATALOGUE_ALIAS if catalogue is not None else CAMPAIGN_ALIAS}")
+        derived = "detections" in tables and "trajectory" in tables
         for name, path in sorted(tables.items()):
             try:
-                con.register(name, pads.dataset(str(path), format="parquet"))
+                con.register(STORED_DETECTIONS if derived and name == "detections" else name,
+                             pads.dataset(str(path), format="parquet"))
             except (OSError, pa.ArrowException) as exc:
                 raise SqlSessionError(f"run {run!r}: table {name!r} unreadable ({path}: "
                                       f"{one_line(str(exc))})") from None
+        if derived:  # the detections with their true bearing and range (the run database's view)
+            try:
+                con.execute("CREATE TEMP VIEW detections AS "
+                            + detections_view(STORED_DETECTIONS, "trajectory"))
+            except duckdb.BinderException:  # a table without the truth's point: as stored
+                con.execute(f"CREATE TEMP VIEW detections AS SELECT * FROM {STORED_DETECTIONS}")
         for statement in LOCKDOWN:
             con.execute(statement)
     except BaseException:

@@ -9,7 +9,7 @@ import itertools
 import numpy as np
 import polars as pl
 
-from pipeline.io.tables import xyz
+from pipeline.ops.detect import true_lines_of_sight
 
 BIAS_BINS_DEG = np.arange(0.0, 65.0, 5.0)  # emission-angle bins of the centre-bias table
 
@@ -30,14 +30,15 @@ def frame_series(run: str, frames_table: pl.DataFrame, scores: pl.DataFrame,
             .with_columns(pl.lit(run).alias("run")))
 
 
-def centre_bias(run: str, detections: pl.DataFrame, k: np.ndarray) -> pl.DataFrame | None:
+def centre_bias(run: str, detections: pl.DataFrame, trajectory: pl.DataFrame, k: np.ndarray
+                ) -> pl.DataFrame | None:
     """The physical sensor's ellipse-centre bias per emission-angle bin: the true rim ellipse's
     centre minus the pinhole image of the true crater centre (px, median and 95th percentile of
     its length), and the bias as an angle (median, microradians). None without ellipses, or
     without a bin of 10 craters."""
     if "true_ellipse_u_px" not in detections.columns:
         return None
-    u = xyz(detections, "u_true_body", "")
+    u, _ = true_lines_of_sight(detections, trajectory)
     x = u @ k.T
     centre = x[:, :2] / x[:, 2:3]
     bias = np.stack([detections["true_ellipse_u_px"].to_numpy(),

@@ -14,6 +14,7 @@ from pipeline.core.sensors import camera
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.core.sensors.detection import (
     PHYSICAL_COLUMNS,
+    TRUE_POSITION_COLUMNS,
     CraterArrays,
     DetectionModel,
     FrameDetections,
@@ -62,6 +63,27 @@ def true_poses(trajectory: pl.DataFrame) -> tuple[np.ndarray, np.ndarray]:
             np.swapaxes(dcm_mci_from_body, -1, -2) @ frames.dcm_mci_from_mcmf(theta))
 
 
+def true_lines_of_sight(detections: pl.DataFrame, trajectory: pl.DataFrame
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """The true unit bearings (n, 3) (body) and ranges (n,) (m) of the detections' rows, from
+    their craters' true points (`c_true_mcmf_*`) and the trajectory's true poses at their frames
+    (`true_poses`); NaN for a false detection (no true crater). As the sensor computed them, to
+    rounding."""
+    r_mcmf, dcm_body_from_mcmf = true_poses(trajectory)
+    at = np.searchsorted(trajectory["frame"].to_numpy(), detections["frame"].to_numpy())
+    p_body = np.einsum("nij,nj->ni", dcm_body_from_mcmf[at],
+                       xyz(detections, "c_true_mcmf", "_m") - r_mcmf[at])
+    rho = np.linalg.norm(p_body, axis=1)
+    return p_body / rho[:, None], rho
+
+
+def with_truth(detections: pl.DataFrame, trajectory: pl.DataFrame) -> pl.DataFrame:
+    """The detections with their true bearings and ranges as columns (`u_true_body_*`,
+    `rho_true_m`: `true_lines_of_sight`), as the run database's `detections` view has them."""
+    u, rho = true_lines_of_sight(detections, trajectory)
+    return detections.with_columns(**xyz_columns("u_true_body", "", u), rho_true_m=rho)
+
+
 def detect_all(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFrame, seed: int,
                advance=None, sun_mcmf_m: np.ndarray | None = None
                ) -> tuple[pl.DataFrame, pl.DataFrame]:
@@ -105,7 +127,13 @@ def tables(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFram
     theta_rows = np.repeat(theta, counts)
     c_mci = frames.mci_from_mcmf(craters.r_mcmf_m[matched], theta_rows)
     c_mci[matched < 0] = np.nan
-    u_true = cat("u_true_body").reshape(-1, 3)
+    if model.physical is not None:  # the world's crater, as the sensor saw it
+        c_true = np.column_stack([
+            np.concatenate([f.physical[c] for f in per_frame if f.physical is not None])
+            if per_frame else np.empty(0) for c in TRUE_POSITION_COLUMNS])
+    else:  # the paper's sensor sees the catalogue's craters
+        c_true = craters.r_mcmf_m[np.maximum(row, 0)] if row.size else np.empty((0, 3))
+        c_true[row < 0] = np.nan
     u_meas = cat("u_meas_body").reshape(-1, 3)
     pixel = cat("pixel_uv").reshape(-1, 2).astype(np.float32)  # (pipeline.vocab.tables)
     first_row = np.repeat(np.cumsum(counts) - counts, counts)
@@ -115,9 +143,8 @@ def tables(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFram
         "crater_id": np.where(row >= 0, craters.crater_id[row], -1),
         "diam_km": np.where(row >= 0, craters.diam_km[row], np.nan),
         "matched_id": np.where(matched >= 0, craters.crater_id[matched], -1),
-        **xyz_columns("c_mci", "_m", c_mci),
-        **xyz_columns("u_true_body", "", u_true), **xyz_columns("u_meas_body", "", u_meas),
-        "rho_true_m": cat("rho_true_m").astype(np.float32), "rho_meas_m": cat("rho_meas_m"),
+        **xyz_columns("c_mci", "_m", c_mci), **xyz_columns("c_true_mcmf", "_m", c_true),
+        **xyz_columns("u_meas_body", "", u_meas), "rho_meas_m": cat("rho_meas_m"),
         "pixel_u": pixel[:, 0], "pixel_v": pixel[:, 1],
         "identified": cat("identified").astype(bool), "used": cat("used").astype(bool),
         "false_match": (matched >= 0) & (row != matched),
@@ -125,7 +152,7 @@ def tables(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFram
     if model.physical is not None:
         detections = detections.with_columns(**{
             n: np.concatenate([f.physical[n] for f in per_frame if f.physical is not None])
-            for n in PHYSICAL_COLUMNS})
+            for n in PHYSICAL_COLUMNS if n not in TRUE_POSITION_COLUMNS})
     corners = np.stack([f.corners_mcmf_m for f in per_frame]) if per_frame else np.empty((0, 4, 3))
     lat, lon, _ = frames.latlon_from_mcmf(corners)
     frames_table = pl.DataFrame({

@@ -37,13 +37,14 @@ def windows(scoring: ScoringConfig, t_impact_s: float) -> tuple[Window, ...]:
     return (*scoring.windows, final)
 
 
-def true_used_positions(detections: pl.DataFrame, lookup: CraterLookup) -> np.ndarray:
+def true_used_positions(detections: pl.DataFrame, lookup: CraterLookup, physical: bool
+                        ) -> np.ndarray:
     """MCI positions (N, 3) of the craters actually seen in the used rows: the catalogue position
     given to the estimator, except for false matches, where it is the true crater's (`lookup`,
     rotated to MCI with the row's `theta_m_rad`); with the physical sensor, the world's crater
     (`c_true_mcmf_*`: the catalogue entry plus its error)."""
     used = detections.filter(pl.col("used"))
-    if "c_true_mcmf_x_m" in used.columns:
+    if physical:
         return frames.mci_from_mcmf(xyz(used, "c_true_mcmf", "_m"), used["theta_m_rad"].to_numpy())
     c = xyz(used, "c_mci", "_m")
     false = used["false_match"].to_numpy()
@@ -66,7 +67,8 @@ def crlb_per_frame(trajectory: pl.DataFrame, used: pl.DataFrame, c_true_mci: np.
     start = np.r_[np.searchsorted(used["frame"].to_numpy(), frame), used.height]
     out = np.full((frame.size, 6, 6), np.nan)
     has_range = np.isfinite(used["rho_meas_m"].to_numpy())
-    rho_true = used["rho_true_m"].to_numpy().astype(np.float64)
+    rho_true = (np.linalg.norm(c_true_mci - r[np.searchsorted(frame, used["frame"].to_numpy())],
+                               axis=1) if sensor_noise is not None else np.empty(0))
     semi_major = (used["true_semi_major_px"].to_numpy() if sensor_noise is not None
                   else np.empty(0))
     for i in range(frame.size):
@@ -163,7 +165,7 @@ def score_run(trajectory: pl.DataFrame, detections: pl.DataFrame, estimates: pl.
     """Scores of every method and frame: `detections` carry `theta_m_rad` (joined from the
     trajectory) and their `used` mask; the bound uses the true noise `sigma_*` (or the physical
     sensor's `sensor_noise`)."""
-    c_true = true_used_positions(detections, lookup)
+    c_true = true_used_positions(detections, lookup, sensor_noise is not None)
     used = detections.filter(pl.col("used"))
     crlb = crlb_per_frame(trajectory, used, c_true, sigma_bearing, sigma_range_m, advance,
                           sensor_noise)

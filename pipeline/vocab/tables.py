@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import polars as pl
 
-from pipeline.core.sensors.detection import PHYSICAL_COLUMNS
+from pipeline.core.sensors.detection import PHYSICAL_COLUMNS, TRUE_POSITION_COLUMNS
 from pipeline.vocab import ATTITUDE_MCI, QUANTITIES
 from pipeline.vocab.schema import BOOL, F32, F64, I32, I64, STR, Group, TableSchema, quat, xyz
 
@@ -33,20 +33,26 @@ TRAJECTORY = TableSchema("trajectory", {
     "nadir_error_rad": F64})
 # Float32 where the noise is >= 1e4 times float32's rounding (readers compute in float64,
 # `pipeline.io.tables.xyz`): the IMU's increments (rounding <= 1e-10 rad and 3e-9 m/s a sample
-# against a tactical IMU's ~1e-6 rad and ~1e-5 m/s noise), the detections' true ranges (to
-# 0.06 m at 1,000 km) and pixels (to 6e-5 px). Unit vectors stay float64: their 1e-4 rad errors
-# are 5e-9 below 1 in a dot product, under float32's rounding of a component. So does what the
-# estimators and Table 1 read (measured bearings and ranges, the craters' positions).
+# against a tactical IMU's ~1e-6 rad and ~1e-5 m/s noise) and the detections' pixels (to
+# 6e-5 px). Unit vectors stay float64: their 1e-4 rad errors are 5e-9 below 1 in a dot product,
+# under float32's rounding of a component. So does what the estimators and Table 1 read
+# (measured bearings and ranges, the craters' positions).
 IMU = TableSchema("imu", {"t_s": F64, **xyz("dtheta", "_rad", F32), **xyz("dv", "_m_s", F32)})
 IMU_TRUTH = TableSchema("imu_truth", {"t_s": F64, **_POSE, "altitude_m": F64, **_BIASES})
 ALTIMETER = TableSchema("altimeter", {"t_s": F64, "rho_true_m": F64, "rho_meas_m": F64,
                                       "returned": BOOL, "fault": BOOL})
 
-PHYSICAL = Group("detection.sensor = physical", dict.fromkeys(PHYSICAL_COLUMNS, F64))
+PHYSICAL = Group("detection.sensor = physical", dict.fromkeys(
+    [c for c in PHYSICAL_COLUMNS if c not in TRUE_POSITION_COLUMNS], F64))
+# The truth of a detection is its crater's true point (`c_true_mcmf`), constant over the frames
+# that see it (Parquet stores the repeats for ~1 byte a row); the true bearing and range follow
+# from it and the trajectory's true pose (`ops.detect.true_lines_of_sight`; the run database's
+# `detections` view adds them as u_true_body_* and rho_true_m). Stored, they were 12.5 MB of
+# the default run's 39.
 DETECTIONS = TableSchema("detections", {
     "frame": I32, "t_s": F64, "det_index": I32, "crater_id": I64, "diam_km": F64,
-    "matched_id": I64, **xyz("c_mci", "_m"), **xyz("u_true_body"), **xyz("u_meas_body"),
-    "rho_true_m": F32, "rho_meas_m": F64, "pixel_u": F32, "pixel_v": F32,
+    "matched_id": I64, **xyz("c_mci", "_m"), **xyz("c_true_mcmf", "_m"), **xyz("u_meas_body"),
+    "rho_meas_m": F64, "pixel_u": F32, "pixel_v": F32,
     "identified": BOOL, "used": BOOL, "false_match": BOOL,
 }, {"physical": PHYSICAL,
     "identification": Group("identification.mode other than simulated", {

@@ -156,7 +156,7 @@ ENTITIES = {
     "catalogue": ["/world/moon/surface", "/world/moon/craters"],
     "trajectory.rrd": ["/world/moon", "/world/path", "/world/spacecraft",
                        "/world/spacecraft/axes", "/trajectory/altitude_km"],
-    "detection.rrd": ["/world/frustum", "/world/footprint", "/world/moon/visible",
+    "detection.rrd": ["/world/frustum", "/world/footprint", "/world/moon/unused",
                       "/world/moon/used", "/world/spacecraft/camera",
                       "/world/spacecraft/camera/used", "/counts/visible"],
     "estimation.rrd": ["/world/estimate/paper", "/world/estimate/joint",

@@ -241,8 +241,11 @@ def test_true_bearing_and_range_follow_the_trajectory(runs):
     rho = np.linalg.norm(los, axis=1)
     q = np.stack([j[f"q_mci_from_body_{c}"].to_numpy() for c in "xyzw"], axis=1)
     u_body = Rotation.from_quat(q).inv().apply(los / rho[:, None])
-    assert j["rho_true_m"].dtype == pl.Float32  # stored to float32's rounding (2^-24 relative)
-    np.testing.assert_allclose(j["rho_true_m"], rho, rtol=2.0**-24)
+    # the stored truth is the seen crater's point (the catalogue's, for the paper's sensor); the
+    # true bearing and range follow from it and the trajectory
+    np.testing.assert_array_equal(xyz(j, "c_true_mcmf_", "_m"), xyz(j, "", "_m"))
+    j = detect.with_truth(j, runs("base").trajectory)
+    np.testing.assert_allclose(j["rho_true_m"], rho, rtol=1e-13)
     np.testing.assert_allclose(xyz(j, "u_true_body_"), u_body, rtol=0, atol=1e-12)
     # Measurements: unit bearings and ranges with the configured noise (chi-square, 2 checks).
     u_meas = xyz(j, "u_meas_body_")
@@ -301,8 +304,12 @@ def test_visible_craters_are_the_brute_force_set(runs):
 
 def test_tables_are_in_run_duckdb_and_queryable(runs):
     run = runs("base")
-    assert_frame_equal(run.sql("SELECT * FROM detections ORDER BY frame, crater_id"),
-                       run.detections)
+    # the view adds the true bearing and range to the stored table (to rounding, computed in SQL)
+    view = run.sql("SELECT * FROM detections ORDER BY frame, crater_id")
+    assert_frame_equal(view.select(run.detections.columns), run.detections)
+    truth = detect.with_truth(run.detections, run.trajectory)
+    assert_frame_equal(view, truth.select(view.columns), check_exact=False, rel_tol=1e-13,
+                       abs_tol=1e-15)
     assert_frame_equal(run.sql("SELECT * FROM frames ORDER BY frame"), run.frames)
 
     # Which craters were seen at t = T?
@@ -349,7 +356,8 @@ def test_same_config_gives_identical_tables(runs):
 
 def test_another_seed_sees_the_same_craters_but_identifies_others(runs):
     a, b = runs("base").detections, runs("seed2").detections
-    same = ["frame", "crater_id", "diam_km", "rho_true_m", "u_true_body_x"]
+    same = ["frame", "crater_id", "diam_km", "c_true_mcmf_x_m", "c_true_mcmf_y_m",
+            "c_true_mcmf_z_m"]
     assert_frame_equal(a.select(same), b.select(same))
     # Independent draws: each crater's identified flag differs with probability 2 p (1 - p).
     differ = int((a["identified"] != b["identified"]).sum())

@@ -27,7 +27,7 @@ from pipeline.core.estimation import estimators
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
-from pipeline.ops import estimate
+from pipeline.ops import detect, estimate
 from pipeline.stages import DAG
 from pipeline.viz.rerun import base, estimation
 from pipeline.vocab.tables import ESTIMATES
@@ -39,8 +39,8 @@ PIPELINE = ("ingest", "trajectory", "detect", "estimate")
 FALSE_MATCHES = {"false_match_share": 0.1}
 
 # Truth that the detection and trajectory stages write beside the measurements.
-TRUE_DETECTION_COLUMNS = ("crater_id", "diam_km", "u_true_body_x", "u_true_body_y",
-                          "u_true_body_z", "rho_true_m", "false_match")
+TRUE_DETECTION_COLUMNS = ("crater_id", "diam_km", "c_true_mcmf_x_m", "c_true_mcmf_y_m",
+                          "c_true_mcmf_z_m", "false_match")
 NOT_TRUTH_TRAJECTORY_COLUMNS = ("frame", "t_s", "theta_m_rad")  # time and the Moon's rotation
 
 F32_REL = 2.0**-24  # float32 rounding in the recordings
@@ -410,7 +410,7 @@ def test_robust_rejects_the_false_matches_and_records_them(runs, catalogue_db):
     cfg = config("robust", catalogue_db, detection=FALSE_MATCHES, estimation={"robust": True})
     store = runs["robust"]
     est, truth = read(store, "estimates"), read(store, "trajectory")
-    used = read(store, "detections").filter("used").join(
+    used = detect.with_truth(read(store, "detections"), truth).filter("used").join(
         truth.select("frame", *[c for c in truth.columns if c.startswith(("r_mci", "q_mci"))]),
         on="frame")
     p_body = xyz(used, "u_true_body", "") * used["rho_true_m"].to_numpy()[:, None]
@@ -420,8 +420,8 @@ def test_robust_rejects_the_false_matches_and_records_them(runs, catalogue_db):
     gate_m = np.sqrt(chi2.ppf(cfg.estimation.gate_probability, 3)) * max(
         cfg.detection.sigma_range_m, used["rho_true_m"].max() * cfg.detection.sigma_bearing)
     false = used["false_match"].to_numpy()
-    # right matches sit on the crater seen (to the float32 rounding of the stored true range)
-    assert np.all(offset[~false] < 2.0**-24 * used["rho_true_m"].max() + 1e-3)
+    # right matches sit on the crater seen (to the rounding of the rotations, ~1e-9 m)
+    assert np.all(offset[~false] < 1e-6)
     must_reject = used.filter(pl.Series(false & (offset > 10 * gate_m)))
     assert must_reject.height > 0.99 * false.sum()
 

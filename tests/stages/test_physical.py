@@ -22,6 +22,7 @@ from pipeline.core.math import frames
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.io.store import RunStore
 from pipeline.io.tables import xyz
+from pipeline.ops import detect
 from pipeline.vocab.tables import DETECTIONS, FRAMES
 
 WINDOW = {"start_s": 1900.0, "end_s": 1960.0, "frame_rate_hz": 1.0}
@@ -87,7 +88,8 @@ def test_physical_detections_and_frames_have_their_columns(camera_run: RunStore)
     assert np.all((p > 0) & (p <= 0.95))
     # apparent_size ranges: the measured range is the one from the ellipse, near the truth.
     np.testing.assert_array_equal(det["rho_meas_m"].to_numpy(), det["rho_size_m"].to_numpy())
-    rel = det["rho_meas_m"].to_numpy() / det["rho_true_m"].to_numpy() - 1.0
+    _, rho_true = detect.true_lines_of_sight(det, table(camera_run, "trajectory"))
+    rel = det["rho_meas_m"].to_numpy() / rho_true - 1.0
     assert 0.01 < np.std(rel) < 0.2
     # The frames: the Sun's unit direction, its elevation and the ground sample distance.
     np.testing.assert_allclose(np.linalg.norm(xyz(fr, "sun_mci", ""), axis=1), 1.0, rtol=1e-12)

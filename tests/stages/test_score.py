@@ -23,8 +23,10 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.config import RunConfig
 from pipeline.core.estimation import estimators
+from pipeline.core.math import frames
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
+from pipeline.ops import detect
 from pipeline.ops.score import true_used_positions
 from pipeline.stages import score
 from pipeline.viz.rerun import base as rerun_base
@@ -253,16 +255,21 @@ def test_false_matches_get_the_bound_of_the_craters_actually_seen(runs, catalogu
     x, y, z = (seen[c].to_numpy() for c in ("x_m", "y_m", "z_m"))
     c_true = np.stack([cos * x - sin * y, sin * x + cos * y, z], axis=1)
 
-    got = true_used_positions(detections, score.catalogue_lookup(catalogue_db))
+    got = true_used_positions(detections, score.catalogue_lookup(catalogue_db), physical=False)
     # float64 rotations of ~1.7e6 m vectors: a few ulp (2.3e-10 m each)
     np.testing.assert_allclose(got, c_true, rtol=0, atol=1e-8)
     np.testing.assert_array_equal(got[~false], xyz(used, "c_mci", "_m")[~false])
     assert np.linalg.norm(got[false] - xyz(used, "c_mci", "_m")[false], axis=1).min() > 1.0
     pose = truth_of(r, used)
-    los = dcms(quats(pose, "q_mci_from_body")) @ xyz(used, "u_true_body", "")[:, :, None]
+    # the stored truth's point is the crater seen (false matches included), and so is where the
+    # true bearing and range derived from it point from the true pose
     np.testing.assert_allclose(
-        xyz(pose, "r_mci", "_m") + los[:, :, 0] * used["rho_true_m"].to_numpy()[:, None], c_true,
-        rtol=0, atol=2.0**-24 * used["rho_true_m"].max())  # true ranges stored in float32
+        frames.mci_from_mcmf(xyz(used, "c_true_mcmf", "_m"), theta), c_true, rtol=0, atol=1e-8)
+    seen = detect.with_truth(used, traj)
+    los = dcms(quats(pose, "q_mci_from_body")) @ xyz(seen, "u_true_body", "")[:, :, None]
+    np.testing.assert_allclose(
+        xyz(pose, "r_mci", "_m") + los[:, :, 0] * seen["rho_true_m"].to_numpy()[:, None], c_true,
+        rtol=0, atol=1e-6)
 
     scores = r.read("scores").filter(pl.col("method") == "paper")
     frames_with_false = used.filter("false_match")["frame"].unique().sort()[:3]

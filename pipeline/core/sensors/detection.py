@@ -26,12 +26,14 @@ from pipeline.core.sensors import rim_sensor as sensor
 # (undistorted image, px; angle of the major axis from +u towards +v), the apparent diameter
 # (px), the range from the apparent size (m), the solar incidence, emission and phase angles at
 # the crater (deg), the detection probability, and the world's crater (diameter, MCMF centre).
+# the true crater point (MCMF, m) of a detection: the world's crater (the catalogue entry plus
+# its error, on the terrain's crest), NaN for a false detection
+TRUE_POSITION_COLUMNS = ("c_true_mcmf_x_m", "c_true_mcmf_y_m", "c_true_mcmf_z_m")
 PHYSICAL_COLUMNS = (
     "ellipse_u_px", "ellipse_v_px", "semi_major_px", "semi_minor_px", "ellipse_angle_rad",
     "true_ellipse_u_px", "true_ellipse_v_px", "true_semi_major_px", "true_semi_minor_px",
     "true_ellipse_angle_rad", "apparent_diam_px", "rho_size_m", "incidence_deg", "emission_deg",
-    "phase_deg", "p_detect", "true_diam_km", "c_true_mcmf_x_m", "c_true_mcmf_y_m",
-    "c_true_mcmf_z_m")
+    "phase_deg", "p_detect", "true_diam_km", *TRUE_POSITION_COLUMNS)
 
 
 class CraterArrays(Protocol):

@@ -95,11 +95,7 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
     # match is drawn at the wrong crater, in its own colour), and all in the camera view (pixels).
     theta = np.repeat(trajectory["theta_m_rad"].to_numpy(), frames_table["n_visible"].to_numpy())
     n_visible = frames_table["n_visible"].to_numpy()
-    sc_mci = np.repeat(r_mci, n_visible, axis=0)
-    u_true_mci = np.einsum("nij,nj->ni", np.repeat(dcm, n_visible, axis=0),
-                           xyz(detections, "u_true_body", ""))
-    seen_mcmf = frames.mcmf_from_mci(
-        sc_mci + u_true_mci * detections["rho_true_m"].to_numpy()[:, None], theta)
+    seen_mcmf = xyz(detections, "c_true_mcmf", "_m")
     c_mcmf = frames.mcmf_from_mci(xyz(detections, "c_mci", "_m"), theta)
     radius_m = _crater_point_radius_m(detections["diam_km"].to_numpy(), 0.6) + 200.0
     pixel = np.stack([detections["pixel_u"].to_numpy(), detections["pixel_v"].to_numpy()], 1)
