@@ -19,7 +19,7 @@ from pipeline.campaign.results import TIMING_COLUMNS, read_table
 from pipeline.campaign.spec import load_spec
 from pipeline.core.sensors.imu import GRADES
 from pipeline.errors import ConfigError, PipelineError
-from pipeline.ops import detect
+from pipeline.ops import detection_columns
 
 DISPERSIONS = """
 [dispersions]
@@ -127,7 +127,7 @@ def test_each_dispersion_reaches_its_run(workdir: Path, catalogue_db: Path):
         nav = pl.read_parquet(paths.runs / rid / "navigate" / "navigation.parquet")
         assert nav.height and np.isfinite(nav["err_pos_x_m"].to_numpy()).any()
         # the measurements carry the drawn noise: range and bearing errors' spread
-        det = detect.with_truth(
+        det = detection_columns.with_derived(
             pl.read_parquet(paths.runs / rid / "detect" / "detections.parquet"),
             pl.read_parquet(paths.runs / rid / "trajectory" / "trajectory.parquet")).filter(
             pl.col("identified"))
@@ -432,7 +432,7 @@ def test_the_built_in_world_jitter_and_mounting_reach_their_runs(workdir: Path,
         assert cfg.detection.world_seed == spec.draws(i)["detection.world_seed"]
         assert cfg.estimation.assumed_camera_mounting_deg == (0.0, 0.0, 0.0)
         traj = pl.read_parquet(paths.runs / rid / "trajectory" / "trajectory.parquet")
-        det = detect.with_truth(
+        det = detection_columns.with_derived(
             pl.read_parquet(paths.runs / rid / "detect" / "detections.parquet"), traj)
         runs.append((cfg, det, traj))
     # the worlds: the true range to the same crater in the same frame differs by the errors

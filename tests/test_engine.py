@@ -262,7 +262,8 @@ def test_a_recording_edit_redraws_the_recordings_and_recomputes_nothing(monkeypa
 def test_an_operation_edit_rekeys_its_stages_and_their_downstream(monkeypatch):
     code0, code1, key0, key1, vis0, vis1 = hashes_with_edit(monkeypatch, "pipeline.ops.detect")
     # the closed loop detects with the same operation
-    assert changed(code0, code1) == {"render", "detect", "fly"}
+    assert changed(code0, code1) == {"render", "detect", "fly"}  # not estimate: its columns
+    # come from ops.detection_columns
     assert changed(key0, key1) == {"render", "detect", "fly", "estimate", "navigate", "score"}
     assert changed(vis0, vis1) == changed(key0, key1)  # visuals follow what they draw
 

@@ -23,7 +23,8 @@ from pipeline.core.vision.index_cache import IndexCache
 from pipeline.io import ephemeris
 from pipeline.io.catalogue import Catalogue, load_catalogue
 from pipeline.io.pair_index import PairIndexStore
-from pipeline.ops.detect import model_of, true_poses
+from pipeline.ops.detect import model_of
+from pipeline.ops.detection_columns import true_poses
 from pipeline.ops.imu import simulate as simulate_sensors
 from pipeline.ops.navigate import imu_samples
 from pipeline.ops.trajectory import simulate as simulate_trajectory

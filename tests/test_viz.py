@@ -135,8 +135,9 @@ def test_estimation_status_iterations_and_solve_time_are_separate_series(tmp_pat
     path = tmp_path / "estimation.rrd"
     with layout.recording("r", path) as rec:
         estimation.log_estimation(rec, est, pl.DataFrame(
-            schema={"frame": pl.Int32, "det_index": pl.Int32, "c_mci_x_m": pl.Float64,
-                    "c_mci_y_m": pl.Float64, "c_mci_z_m": pl.Float64, "diam_km": pl.Float64}),
+            schema={"frame": pl.Int32, "det_index": pl.Int32, "c_matched_mcmf_x_m": pl.Float64,
+                    "c_matched_mcmf_y_m": pl.Float64, "c_matched_mcmf_z_m": pl.Float64,
+                    "diam_km": pl.Float64}),
             traj)
     for method in ("paper", "joint"):
         m = est.filter(pl.col("method") == method)
@@ -165,8 +166,9 @@ def test_covariance_ellipsoids_shrink_with_altitude(tmp_path, tables):
     path = tmp_path / "estimation.rrd"
     with layout.recording("r", path) as rec:
         estimation.log_estimation(rec, est.filter(pl.col("method") == "paper"), pl.DataFrame(
-            schema={"frame": pl.Int32, "det_index": pl.Int32, "c_mci_x_m": pl.Float64,
-                    "c_mci_y_m": pl.Float64, "c_mci_z_m": pl.Float64, "diam_km": pl.Float64}),
+            schema={"frame": pl.Int32, "det_index": pl.Int32, "c_matched_mcmf_x_m": pl.Float64,
+                    "c_matched_mcmf_y_m": pl.Float64, "c_matched_mcmf_z_m": pl.Float64,
+                    "diam_km": pl.Float64}),
             traj)
     cols = columns(path, "/world/estimate_cov/paper")
     ok = est.filter((pl.col("method") == "paper") & (pl.col("status") == "ok"))

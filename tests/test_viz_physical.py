@@ -82,7 +82,7 @@ def detections_table(physical: bool) -> pl.DataFrame:
         "det_index": (np.arange(n) - first).astype(np.int32),
         "crater_id": np.arange(n, dtype=np.int64), "diam_km": rng.uniform(2, 20, n),
         "matched_id": np.arange(n, dtype=np.int64) + 1000 * false,
-        **{f"c_mci_{c}_m": c_mci[:, i] for i, c in enumerate("xyz")},
+        **{f"c_matched_mcmf_{c}_m": c_mcmf[:, i] for i, c in enumerate("xyz")},
         **{f"c_true_mcmf_{c}_m": c_mcmf[:, i] for i, c in enumerate("xyz")},
         **{f"u_meas_body_{c}": u_body[:, i] for i, c in enumerate("xyz")},
         "rho_meas_m": np.full(n, 90e3),

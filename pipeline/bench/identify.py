@@ -62,7 +62,8 @@ def _lost_in_space(scratch: Scratch, store: RunStore, radius_km: float, full: bo
     from pipeline.core.vision.index_cache import IndexCache
     from pipeline.io import ephemeris
     from pipeline.io.catalogue import load_recorded_catalogue
-    from pipeline.ops.detect import model_of, true_poses
+    from pipeline.ops.detect import model_of
+    from pipeline.ops.detection_columns import true_poses
     from pipeline.ops.navigate import imu_samples
     from pipeline.stages.detect import identify_options
     from pipeline.stages.navigate import options as navigate_options

@@ -44,7 +44,8 @@ from pipeline.workspace import Workspace, workspace
 
 DEFAULT_DB = "catalogue/craters.duckdb"
 CATALOGUE_ALIAS = "craters"
-# the detections table as stored; `detections` is the view that adds the truth's bearing and range
+# the detections table as stored; `detections` is the view that adds c_mci and the truth's bearing
+# and range
 STORED_DETECTIONS = "detections_stored"
 CAMPAIGN_ALIAS = "campaign"  # `--campaign NAME`: runs/NAME/campaign.duckdb, tables campaign.<t>
 
@@ -169,11 +170,11 @@ def open_session(run: str | None = None, db: str | Path | None = None,
             except (OSError, pa.ArrowException) as exc:
                 raise SqlSessionError(f"run {run!r}: table {name!r} unreadable ({path}: "
                                       f"{one_line(str(exc))})") from None
-        if derived:  # the detections with their true bearing and range (the run database's view)
+        if derived:  # the detections with c_mci and the true bearing and range (as run.duckdb)
             try:
                 con.execute("CREATE TEMP VIEW detections AS "
                             + detections_view(STORED_DETECTIONS, "trajectory"))
-            except duckdb.BinderException:  # a table without the truth's point: as stored
+            except duckdb.BinderException:  # a table without the crater points: as stored
                 con.execute(f"CREATE TEMP VIEW detections AS SELECT * FROM {STORED_DETECTIONS}")
         for statement in LOCKDOWN:
             con.execute(statement)

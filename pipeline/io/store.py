@@ -363,8 +363,8 @@ class RunStore:
                         con.execute(f'CREATE VIEW "{name}" AS '
                                     f'{detections_view(source, trajectory)}')
                         continue
-                    except duckdb.BinderException:  # a table of a version without the truth's
-                        pass  # point (before 12-04): its own columns
+                    except duckdb.BinderException:  # a table of a version without the crater
+                        pass  # points (before 12-04): its own columns
                 con.execute(f'CREATE VIEW "{name}" AS SELECT * FROM {source}')
         finally:
             con.close()
@@ -372,9 +372,11 @@ class RunStore:
 
 
 def detections_view(detections: str, trajectory: str) -> str:
-    """The detections with their true bearing and range (`u_true_body_*`, `rho_true_m`) derived
-    as `ops.detect.true_lines_of_sight` does: the crater's true point minus the true position
-    (MCMF), rotated to MCI by Rz(theta_m), then to body axes by R(q_mci_from_body)^T."""
+    """The detections with the matched crater in MCI (`c_mci_*`: Rz(theta_m) c_matched_mcmf, as
+    `ops.detect.matched_positions_mci`) and their true bearing and range (`u_true_body_*`,
+    `rho_true_m`) derived as `ops.detect.true_lines_of_sight` does: the crater's true point
+    minus the true position (MCMF), rotated to MCI by Rz(theta_m), then to body axes by
+    R(q_mci_from_body)^T."""
     q = {a: f"t.q_mci_from_body_{a}" for a in "xyzw"}
     norm = f"sqrt({q['x']}^2 + {q['y']}^2 + {q['z']}^2 + {q['w']}^2)"
     x, y, z, w = (f"({q[a]} / {norm})" for a in "xyzw")
@@ -392,7 +394,10 @@ def detections_view(detections: str, trajectory: str) -> str:
     return (f"SELECT * EXCLUDE (_bx, _by, _bz), _bx / rho_true_m AS u_true_body_x, "
             f"_by / rho_true_m AS u_true_body_y, _bz / rho_true_m AS u_true_body_z FROM ("
             f"SELECT *, sqrt(_bx^2 + _by^2 + _bz^2) AS rho_true_m FROM ("
-            f"SELECT d.*, {body[0]} AS _bx, {body[1]} AS _by, {body[2]} AS _bz "
+            f"SELECT d.*, {c}*d.c_matched_mcmf_x_m - {s}*d.c_matched_mcmf_y_m AS c_mci_x_m, "
+            f"{s}*d.c_matched_mcmf_x_m + {c}*d.c_matched_mcmf_y_m AS c_mci_y_m, "
+            f"d.c_matched_mcmf_z_m AS c_mci_z_m, "
+            f"{body[0]} AS _bx, {body[1]} AS _by, {body[2]} AS _bz "
             f"FROM {detections} d LEFT JOIN (SELECT frame, theta_m_rad, r_mcmf_x_m, r_mcmf_y_m, "
             f"r_mcmf_z_m, q_mci_from_body_x, q_mci_from_body_y, q_mci_from_body_z, "
             f"q_mci_from_body_w FROM {trajectory}) t ON d.frame = t.frame)) "

@@ -9,7 +9,7 @@ import itertools
 import numpy as np
 import polars as pl
 
-from pipeline.ops.detect import true_lines_of_sight
+from pipeline.ops.detection_columns import true_lines_of_sight
 
 BIAS_BINS_DEG = np.arange(0.0, 65.0, 5.0)  # emission-angle bins of the centre-bias table
 

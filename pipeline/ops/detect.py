@@ -8,7 +8,7 @@ import polars as pl
 
 from pipeline.config import DetectionConfig
 from pipeline.core.body import illumination
-from pipeline.core.math import frames, rotations
+from pipeline.core.math import frames
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors import camera
 from pipeline.core.sensors import rim_sensor as sensor
@@ -22,7 +22,8 @@ from pipeline.core.sensors.detection import (
     detect_frame,
     frame_rngs,
 )
-from pipeline.io.tables import quats, xyz, xyz_columns
+from pipeline.io.tables import xyz, xyz_columns
+from pipeline.ops.detection_columns import true_poses
 
 
 def physical_sensor(d: DetectionConfig) -> PhysicalSensor:
@@ -52,36 +53,6 @@ def model_of(d: DetectionConfig) -> DetectionModel:
         false_match_share=d.false_match_share, sigma_bearing=d.sigma_bearing,
         sigma_range_m=d.sigma_range_m, moon_radius_m=MOON_RADIUS_M,
         physical=physical_sensor(d) if d.sensor == "physical" else None)
-
-
-def true_poses(trajectory: pl.DataFrame) -> tuple[np.ndarray, np.ndarray]:
-    """The true positions r_mcmf_m (F, 3) (m) and attitudes dcm_body_from_mcmf (F, 3, 3) of the
-    trajectory table's frames (the sensor's and the truth's: never the navigator's)."""
-    dcm_mci_from_body = rotations.dcm_from_q(quats(trajectory, "q_mci_from_body"))
-    theta = trajectory["theta_m_rad"].to_numpy()
-    return (xyz(trajectory, "r_mcmf", "_m"),
-            np.swapaxes(dcm_mci_from_body, -1, -2) @ frames.dcm_mci_from_mcmf(theta))
-
-
-def true_lines_of_sight(detections: pl.DataFrame, trajectory: pl.DataFrame
-                        ) -> tuple[np.ndarray, np.ndarray]:
-    """The true unit bearings (n, 3) (body) and ranges (n,) (m) of the detections' rows, from
-    their craters' true points (`c_true_mcmf_*`) and the trajectory's true poses at their frames
-    (`true_poses`); NaN for a false detection (no true crater). As the sensor computed them, to
-    rounding."""
-    r_mcmf, dcm_body_from_mcmf = true_poses(trajectory)
-    at = np.searchsorted(trajectory["frame"].to_numpy(), detections["frame"].to_numpy())
-    p_body = np.einsum("nij,nj->ni", dcm_body_from_mcmf[at],
-                       xyz(detections, "c_true_mcmf", "_m") - r_mcmf[at])
-    rho = np.linalg.norm(p_body, axis=1)
-    return p_body / rho[:, None], rho
-
-
-def with_truth(detections: pl.DataFrame, trajectory: pl.DataFrame) -> pl.DataFrame:
-    """The detections with their true bearings and ranges as columns (`u_true_body_*`,
-    `rho_true_m`: `true_lines_of_sight`), as the run database's `detections` view has them."""
-    u, rho = true_lines_of_sight(detections, trajectory)
-    return detections.with_columns(**xyz_columns("u_true_body", "", u), rho_true_m=rho)
 
 
 def detect_all(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFrame, seed: int,
@@ -124,9 +95,8 @@ def tables(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFram
         return np.concatenate([getattr(f, attr) for f in per_frame]) if per_frame else np.empty(0)
 
     row, matched = cat("row").astype(np.int64), cat("matched_row").astype(np.int64)
-    theta_rows = np.repeat(theta, counts)
-    c_mci = frames.mci_from_mcmf(craters.r_mcmf_m[matched], theta_rows)
-    c_mci[matched < 0] = np.nan
+    c_matched = craters.r_mcmf_m[matched] if matched.size else np.empty((0, 3))
+    c_matched[matched < 0] = np.nan
     if model.physical is not None:  # the world's crater, as the sensor saw it
         c_true = np.column_stack([
             np.concatenate([f.physical[c] for f in per_frame if f.physical is not None])
@@ -143,7 +113,8 @@ def tables(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFram
         "crater_id": np.where(row >= 0, craters.crater_id[row], -1),
         "diam_km": np.where(row >= 0, craters.diam_km[row], np.nan),
         "matched_id": np.where(matched >= 0, craters.crater_id[matched], -1),
-        **xyz_columns("c_mci", "_m", c_mci), **xyz_columns("c_true_mcmf", "_m", c_true),
+        **xyz_columns("c_matched_mcmf", "_m", c_matched),
+        **xyz_columns("c_true_mcmf", "_m", c_true),
         **xyz_columns("u_meas_body", "", u_meas), "rho_meas_m": cat("rho_meas_m"),
         "pixel_u": pixel[:, 0], "pixel_v": pixel[:, 1],
         "identified": cat("identified").astype(bool), "used": cat("used").astype(bool),
@@ -156,8 +127,8 @@ def tables(model: DetectionModel, craters: CraterArrays, trajectory: pl.DataFram
     corners = np.stack([f.corners_mcmf_m for f in per_frame]) if per_frame else np.empty((0, 4, 3))
     lat, lon, _ = frames.latlon_from_mcmf(corners)
     frames_table = pl.DataFrame({
-        "frame": frame.astype(np.int32), "t_s": t_s, "altitude_km": alt_m / 1e3,
-        "d_min_km": [f.d_min_km for f in per_frame],
+        "frame": frame.astype(np.int32), "t_s": t_s, "theta_m_rad": theta,
+        "altitude_km": alt_m / 1e3, "d_min_km": [f.d_min_km for f in per_frame],
         "n_candidates": [f.n_candidates for f in per_frame],
         "n_visible": counts,
         "n_identified": [int(f.identified.sum()) for f in per_frame],

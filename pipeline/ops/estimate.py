@@ -25,6 +25,7 @@ from pipeline.core.estimation.measurement import per_crater
 from pipeline.core.math.streams import stream
 from pipeline.core.sensors.rim_sensor import SensorNoise, measurement_sigmas
 from pipeline.io.tables import quat_columns, xyz, xyz_columns
+from pipeline.ops.detection_columns import matched_positions_mci
 
 
 @dataclass(frozen=True)
@@ -59,7 +60,7 @@ class UsedCraters:
 
         return cls(frame, frames_table["t_s"].to_numpy(), np.r_[start, d.height],
                    d["det_index"].to_numpy(), d["matched_id"].to_numpy(),
-                   xyz(d, "c_mci", "_m"), u_meas, d["rho_meas_m"].to_numpy(),
+                   matched_positions_mci(d, frames_table), u_meas, d["rho_meas_m"].to_numpy(),
                    column("semi_major_px"), column("rho_size_m"))
 
     def sigmas(self, a: int, b: int, scalar: tuple[float, float], noise: SensorNoise | None,

@@ -28,7 +28,8 @@ from pipeline.core.sensors.rim_sensing import Sensed, Sensing, model_sensing
 from pipeline.core.vision.identify import IdentifyOptions
 from pipeline.core.vision.index_cache import IndexCache
 from pipeline.io.tables import xyz
-from pipeline.ops.detect import tables, true_poses
+from pipeline.ops.detect import tables
+from pipeline.ops.detection_columns import true_poses
 from pipeline.ops.navigate import NavigateOptions, altimeter_samples, imu_samples, initial_state
 
 

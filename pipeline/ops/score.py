@@ -46,7 +46,7 @@ def true_used_positions(detections: pl.DataFrame, lookup: CraterLookup, physical
     used = detections.filter(pl.col("used"))
     if physical:
         return frames.mci_from_mcmf(xyz(used, "c_true_mcmf", "_m"), used["theta_m_rad"].to_numpy())
-    c = xyz(used, "c_mci", "_m")
+    c = frames.mci_from_mcmf(xyz(used, "c_matched_mcmf", "_m"), used["theta_m_rad"].to_numpy())
     false = used["false_match"].to_numpy()
     if false.any():
         ids = used["crater_id"].to_numpy()[false]

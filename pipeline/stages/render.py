@@ -36,7 +36,8 @@ from pipeline.io.catalogue import check_catalogue_unchanged, load_recorded_catal
 from pipeline.io.images import encode_png
 from pipeline.ops import detector_error, render_scores
 from pipeline.ops import render as ops_render
-from pipeline.ops.detect import model_of, true_poses
+from pipeline.ops.detect import model_of
+from pipeline.ops.detection_columns import true_poses
 from pipeline.ops.detectors import make_detector
 from pipeline.ops.surfaces import world_surface
 from pipeline.stages.fly import terrain_options

@@ -44,21 +44,25 @@ ALTIMETER = TableSchema("altimeter", {"t_s": F64, "rho_true_m": F64, "rho_meas_m
 
 PHYSICAL = Group("detection.sensor = physical", dict.fromkeys(
     [c for c in PHYSICAL_COLUMNS if c not in TRUE_POSITION_COLUMNS], F64))
-# The truth of a detection is its crater's true point (`c_true_mcmf`), constant over the frames
-# that see it (Parquet stores the repeats for ~1 byte a row); the true bearing and range follow
-# from it and the trajectory's true pose (`ops.detect.true_lines_of_sight`; the run database's
-# `detections` view adds them as u_true_body_* and rho_true_m). Stored, they were 12.5 MB of
-# the default run's 39.
+# Crater positions are stored where they are constant, in MCMF (Parquet stores a crater's
+# repeats over the frames that see it for ~1 byte a row): the matched crater as the navigator's
+# catalogue has it (`c_matched_mcmf`; in MCI at the frame, what the estimators take:
+# `ops.detect.matched_positions_mci`) and the truth's point (`c_true_mcmf`), from which the true
+# bearing and range follow with the trajectory's true pose (`ops.detect.true_lines_of_sight`).
+# The run database's `detections` view adds c_mci_*, u_true_body_* and rho_true_m. Stored, those
+# were 19.6 MB of the default run's 39.
 DETECTIONS = TableSchema("detections", {
     "frame": I32, "t_s": F64, "det_index": I32, "crater_id": I64, "diam_km": F64,
-    "matched_id": I64, **xyz("c_mci", "_m"), **xyz("c_true_mcmf", "_m"), **xyz("u_meas_body"),
+    "matched_id": I64, **xyz("c_matched_mcmf", "_m"), **xyz("c_true_mcmf", "_m"),
+    **xyz("u_meas_body"),
     "rho_meas_m": F64, "pixel_u": F32, "pixel_v": F32,
     "identified": BOOL, "used": BOOL, "false_match": BOOL,
 }, {"physical": PHYSICAL,
     "identification": Group("identification.mode other than simulated", {
         "false_detection": BOOL, "id_mode": STR, "id_confidence": F64})})
 FRAMES = TableSchema("frames", {
-    "frame": I32, "t_s": F64, "altitude_km": F64, "d_min_km": F64, "n_candidates": I64,
+    "frame": I32, "t_s": F64, "theta_m_rad": F64, "altitude_km": F64, "d_min_km": F64,
+    "n_candidates": I64,
     "n_visible": I64, "n_identified": I64, "n_used": I64, "n_false_match": I64,
     "n_terrain_shadowed": I64, **{f"corner{j}_lat_deg": F64 for j in range(1, 5)},
     **{f"corner{j}_lon_deg": F64 for j in range(1, 5)},

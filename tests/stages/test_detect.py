@@ -25,7 +25,7 @@ from pipeline.config import load_config
 from pipeline.core.math import frames
 from pipeline.io.catalogue import load_catalogue
 from pipeline.io.store import RunStore
-from pipeline.ops import detect
+from pipeline.ops import detect, detection_columns
 from pipeline.vocab.tables import DETECTIONS, FRAMES
 
 R_M = 1_737_400.0
@@ -118,13 +118,15 @@ def catalogue_positions(run: Run) -> pl.DataFrame:
 
 
 def with_trajectory(run: Run) -> pl.DataFrame:
-    """Detections with their frame's trajectory row, their true crater's catalogue position (x_m,
+    """Detections (with the columns the run database's view derives: c_mci, the true bearing
+    and range) with their frame's trajectory row, their true crater's catalogue position (x_m,
     y_m, z_m, cat_diam_km) and their matched crater's (m_x_m, m_y_m, m_z_m)."""
     t = run.trajectory.select("frame", "theta_m_rad", "r_mci_x_m", "r_mci_y_m", "r_mci_z_m",
                               "q_mci_from_body_x", "q_mci_from_body_y", "q_mci_from_body_z",
                               "q_mci_from_body_w")
     cat = catalogue_positions(run)
-    return (run.detections.join(t, on="frame", how="left")
+    derived = detection_columns.with_derived(run.detections, run.trajectory)
+    return (derived.join(t, on="frame", how="left")
             .join(cat.rename({"diam_km": "cat_diam_km"}), on="crater_id", how="left")
             .join(cat.select("crater_id", *(pl.col(f"{c}_m").alias(f"m_{c}_m") for c in "xyz"))
                   .rename({"crater_id": "matched_id"}), on="matched_id", how="left"))
@@ -225,6 +227,7 @@ def test_identification_and_false_match_rates(runs):
 def test_c_mci_is_the_matched_craters_catalogue_position_in_mci(runs):
     j = with_trajectory(runs("base"))
     assert j["m_x_m"].null_count() == 0
+    np.testing.assert_array_equal(xyz(j, "c_matched_mcmf_", "_m"), xyz(j, "m_", "_m"))  # stored
     expected = frames.mci_from_mcmf(xyz(j, "m_", "_m"), j["theta_m_rad"].to_numpy())
     np.testing.assert_allclose(xyz(j, "c_mci_", "_m"), expected, rtol=0, atol=1e-6)
     # The same through an explicit Rz(theta) (MCI from MCMF, ERRATA 2).
@@ -244,7 +247,7 @@ def test_true_bearing_and_range_follow_the_trajectory(runs):
     # the stored truth is the seen crater's point (the catalogue's, for the paper's sensor); the
     # true bearing and range follow from it and the trajectory
     np.testing.assert_array_equal(xyz(j, "c_true_mcmf_", "_m"), xyz(j, "", "_m"))
-    j = detect.with_truth(j, runs("base").trajectory)
+    j = detection_columns.with_derived(j, runs("base").trajectory)
     np.testing.assert_allclose(j["rho_true_m"], rho, rtol=1e-13)
     np.testing.assert_allclose(xyz(j, "u_true_body_"), u_body, rtol=0, atol=1e-12)
     # Measurements: unit bearings and ranges with the configured noise (chi-square, 2 checks).
@@ -304,10 +307,10 @@ def test_visible_craters_are_the_brute_force_set(runs):
 
 def test_tables_are_in_run_duckdb_and_queryable(runs):
     run = runs("base")
-    # the view adds the true bearing and range to the stored table (to rounding, computed in SQL)
+    # the view adds c_mci and the true bearing and range to the stored table (to rounding)
     view = run.sql("SELECT * FROM detections ORDER BY frame, crater_id")
     assert_frame_equal(view.select(run.detections.columns), run.detections)
-    truth = detect.with_truth(run.detections, run.trajectory)
+    truth = detection_columns.with_derived(run.detections, run.trajectory)
     assert_frame_equal(view, truth.select(view.columns), check_exact=False, rel_tol=1e-13,
                        abs_tol=1e-15)
     assert_frame_equal(run.sql("SELECT * FROM frames ORDER BY frame"), run.frames)
@@ -482,7 +485,8 @@ def test_limit_lines_past_the_limb(workdir):
     store = RunStore(cfg.run_id)
     run_stages(cfg, store.root, PIPELINE)
     run = Run(store, cfg)
-    f, t, d = run.frames, run.trajectory, run.detections
+    f, t = run.frames, run.trajectory
+    d = detection_columns.with_derived(run.detections, t)
     corners = [f"corner{j}_{x}_deg" for j in range(1, 5) for x in ("lat", "lon")]
     assert f.select(pl.all_horizontal(pl.col(corners).is_nan())).to_series().all()
 

@@ -27,7 +27,7 @@ from pipeline.core.estimation import estimators
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
-from pipeline.ops import detect, estimate
+from pipeline.ops import detection_columns, estimate
 from pipeline.stages import DAG
 from pipeline.viz.rerun import base, estimation
 from pipeline.vocab.tables import ESTIMATES
@@ -292,7 +292,7 @@ def test_estimator_never_sees_the_truth(workdir, catalogue_db, monkeypatch):
     for i, frame in enumerate(frames["frame"]):
         rows = used.filter(pl.col("frame") == frame)
         (_, c, u, rho), _, _ = spy.of("paper")[i]
-        np.testing.assert_array_equal(c, xyz(rows, "c_mci", "_m"))
+        np.testing.assert_array_equal(c, detection_columns.matched_positions_mci(rows, frames))
         np.testing.assert_array_equal(u, xyz(rows, "u_meas_body", ""))
         np.testing.assert_array_equal(rho, rows["rho_meas_m"].to_numpy())
 
@@ -410,7 +410,7 @@ def test_robust_rejects_the_false_matches_and_records_them(runs, catalogue_db):
     cfg = config("robust", catalogue_db, detection=FALSE_MATCHES, estimation={"robust": True})
     store = runs["robust"]
     est, truth = read(store, "estimates"), read(store, "trajectory")
-    used = detect.with_truth(read(store, "detections"), truth).filter("used").join(
+    used = detection_columns.with_derived(read(store, "detections"), truth).filter("used").join(
         truth.select("frame", *[c for c in truth.columns if c.startswith(("r_mci", "q_mci"))]),
         on="frame")
     p_body = xyz(used, "u_true_body", "") * used["rho_true_m"].to_numpy()[:, None]

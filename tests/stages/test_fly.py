@@ -110,7 +110,7 @@ def test_the_flights_detections_hold_the_craters_the_navigator_measured_against(
     from pipeline.core.math.constants import MOON_RADIUS_M
 
     used = read(flown, "detections").filter(pl.col("used"))
-    c = np.stack([used[f"c_mci_{a}_m"].to_numpy() for a in "xyz"], axis=1)
+    c = np.stack([used[f"c_matched_mcmf_{a}_m"].to_numpy() for a in "xyz"], axis=1)
     heights = np.linalg.norm(c, axis=1) - MOON_RADIUS_M
     assert np.percentile(np.abs(heights), 50) > 1.0  # the map's relief, metres to hundreds
     est = read(flown, "estimates").filter(pl.col("n_used") >= 6)

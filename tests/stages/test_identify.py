@@ -92,7 +92,7 @@ def test_tracking_identifies_the_craters_and_refuses_the_false_detections(
     # Unmatched detections are not used and carry no catalogue crater.
     unmatched = det.filter(~pl.col("identified"))
     assert (unmatched["matched_id"] == -1).all() and not unmatched["used"].any()
-    assert unmatched["c_mci_x_m"].is_nan().all()
+    assert unmatched["c_matched_mcmf_x_m"].is_nan().all()
     c = det["id_confidence"].to_numpy()
     assert np.all((c[det["identified"].to_numpy()] > 0.5) & (c[det["identified"].to_numpy()]
                                                             <= 1.0))

@@ -18,11 +18,10 @@ import polars as pl
 import pytest
 from conftest import query, run_stages, small_config
 
-from pipeline.core.math import frames
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.io.store import RunStore
 from pipeline.io.tables import xyz
-from pipeline.ops import detect
+from pipeline.ops import detection_columns
 from pipeline.vocab.tables import DETECTIONS, FRAMES
 
 WINDOW = {"start_s": 1900.0, "end_s": 1960.0, "frame_rate_hz": 1.0}
@@ -88,7 +87,7 @@ def test_physical_detections_and_frames_have_their_columns(camera_run: RunStore)
     assert np.all((p > 0) & (p <= 0.95))
     # apparent_size ranges: the measured range is the one from the ellipse, near the truth.
     np.testing.assert_array_equal(det["rho_meas_m"].to_numpy(), det["rho_size_m"].to_numpy())
-    _, rho_true = detect.true_lines_of_sight(det, table(camera_run, "trajectory"))
+    _, rho_true = detection_columns.true_lines_of_sight(det, table(camera_run, "trajectory"))
     rel = det["rho_meas_m"].to_numpy() / rho_true - 1.0
     assert 0.01 < np.std(rel) < 0.2
     # The frames: the Sun's unit direction, its elevation and the ground sample distance.
@@ -135,10 +134,9 @@ def test_world_craters_differ_from_the_catalogue_by_the_configured_errors(
     share = world["true_diam_km"].to_numpy() / world["diam_km"].to_numpy() - 1.0
     assert abs(np.sqrt(np.mean(share**2)) / 0.05 - 1) < tol, share
     # The navigator is given the catalogue's positions, not the world's.
-    theta = table(camera_run, "trajectory").select("frame", "theta_m_rad")
-    rows = det.join(theta, on="frame").filter(pl.col("crater_id") == ids[0])
-    c_nav = frames.mcmf_from_mci(xyz(rows, "c_mci", "_m"), rows["theta_m_rad"].to_numpy())
-    np.testing.assert_allclose(c_nav, np.tile(c_cat[0], (rows.height, 1)), atol=1e-6)
+    rows = det.filter(pl.col("crater_id") == ids[0])
+    np.testing.assert_array_equal(xyz(rows, "c_matched_mcmf", "_m"),
+                                  np.tile(c_cat[0], (rows.height, 1)))
 
 
 def test_joint_fixes_are_honest_with_the_catalogue_errors_accounted_for(
@@ -202,18 +200,12 @@ def test_without_catalogue_errors_the_covariance_is_honest(tmp_path: Path,
     store = run(tmp_path, catalogue_db, "exact", TO_ESTIMATE,
                 {**CAMERA, **NO_ERRORS, "range_source": "per_crater"})
     det = table(store, "detections")
-    np.testing.assert_allclose(xyz(det, "c_true_mcmf", "_m"),
-                               frames.mcmf_from_mci(xyz(det, "c_mci", "_m"), _theta(store, det)),
-                               rtol=0, atol=1e-6)  # the world is the catalogue
+    np.testing.assert_array_equal(xyz(det, "c_true_mcmf", "_m"),
+                                  xyz(det, "c_matched_mcmf", "_m"))  # the world is the catalogue
     for method in ("paper", "joint"):
         nees, est = position_nees(store, method)
         assert (est["status"] == "ok").all(), method
         assert 2.0 < nees.mean() < 4.5, (method, nees.mean())
-
-
-def _theta(store: RunStore, det: pl.DataFrame) -> np.ndarray:
-    theta = table(store, "trajectory").select("frame", "theta_m_rad")
-    return det.select("frame").join(theta, on="frame", how="left")["theta_m_rad"].to_numpy()
 
 
 def test_the_paper_sensor_has_no_physical_columns(tmp_path: Path, catalogue_db: Path) -> None:

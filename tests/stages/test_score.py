@@ -26,7 +26,7 @@ from pipeline.core.estimation import estimators
 from pipeline.core.math import frames
 from pipeline.io.store import RunStore
 from pipeline.io.tables import quats, xyz
-from pipeline.ops import detect
+from pipeline.ops import detection_columns
 from pipeline.ops.score import true_used_positions
 from pipeline.stages import score
 from pipeline.viz.rerun import base as rerun_base
@@ -214,7 +214,7 @@ CRLB_COLUMNS = [f"crlb_{q}" for q in POSITION + ATTITUDE + ATTITUDE_MCI]
 def test_crlb_is_that_of_the_used_craters_at_the_true_pose(runs):
     r = runs["clean"]
     scores, traj = r.read("scores"), r.read("trajectory")
-    used = r.read("detections").filter("used")
+    used = detection_columns.with_derived(r.read("detections"), traj).filter("used")
     n_used = used.group_by("frame").len()
     few = n_used.filter(pl.col("len") >= 3).sort("len")["frame"][0]  # the least information
     frames = [traj["frame"][0], traj["frame"][N_FRAMES // 2], few, traj["frame"][-1]]
@@ -258,14 +258,15 @@ def test_false_matches_get_the_bound_of_the_craters_actually_seen(runs, catalogu
     got = true_used_positions(detections, score.catalogue_lookup(catalogue_db), physical=False)
     # float64 rotations of ~1.7e6 m vectors: a few ulp (2.3e-10 m each)
     np.testing.assert_allclose(got, c_true, rtol=0, atol=1e-8)
-    np.testing.assert_array_equal(got[~false], xyz(used, "c_mci", "_m")[~false])
-    assert np.linalg.norm(got[false] - xyz(used, "c_mci", "_m")[false], axis=1).min() > 1.0
+    c_mci = detection_columns.matched_positions_mci(used, traj)
+    np.testing.assert_array_equal(got[~false], c_mci[~false])
+    assert np.linalg.norm(got[false] - c_mci[false], axis=1).min() > 1.0
     pose = truth_of(r, used)
     # the stored truth's point is the crater seen (false matches included), and so is where the
     # true bearing and range derived from it point from the true pose
     np.testing.assert_allclose(
         frames.mci_from_mcmf(xyz(used, "c_true_mcmf", "_m"), theta), c_true, rtol=0, atol=1e-8)
-    seen = detect.with_truth(used, traj)
+    seen = detection_columns.with_derived(used, traj)
     los = dcms(quats(pose, "q_mci_from_body")) @ xyz(seen, "u_true_body", "")[:, :, None]
     np.testing.assert_allclose(
         xyz(pose, "r_mci", "_m") + los[:, :, 0] * seen["rho_true_m"].to_numpy()[:, None], c_true,
@@ -280,7 +281,7 @@ def test_false_matches_get_the_bound_of_the_craters_actually_seen(runs, catalogu
         got_row = columns(scores.filter(pl.col("frame") == frame), CRLB_COLUMNS)[0]
         np.testing.assert_allclose(got_row, crlb_sigmas(r_true, q_true, c_true[in_frame], r.cfg),
                                    rtol=STAT_RTOL)
-        wrong = crlb_sigmas(r_true, q_true, xyz(used, "c_mci", "_m")[in_frame], r.cfg)
+        wrong = crlb_sigmas(r_true, q_true, c_mci[in_frame], r.cfg)
         assert not np.allclose(got_row, wrong, rtol=1e-6, atol=0)
 
 

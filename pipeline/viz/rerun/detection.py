@@ -58,7 +58,6 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
     columns in `frames_table`, the Sun (`log_sun`); with the physical sensor's rim ellipses in
     `detections`, the ellipses (`log_rim_ellipses`), and the camera view's crater points become
     dots at the bearings (the ellipses show the craters' size)."""
-    from pipeline.core.math import frames
     from pipeline.core.sensors import camera
     from pipeline.io.tables import quats, xyz
 
@@ -93,10 +92,9 @@ def log_detection(rec: rr.RecordingStream, model, trajectory, detections, frames
 
     # Visible craters where they are (MCMF), used ones where the catalogue match puts them (a false
     # match is drawn at the wrong crater, in its own colour), and all in the camera view (pixels).
-    theta = np.repeat(trajectory["theta_m_rad"].to_numpy(), frames_table["n_visible"].to_numpy())
     n_visible = frames_table["n_visible"].to_numpy()
     seen_mcmf = xyz(detections, "c_true_mcmf", "_m")
-    c_mcmf = frames.mcmf_from_mci(xyz(detections, "c_mci", "_m"), theta)
+    c_mcmf = xyz(detections, "c_matched_mcmf", "_m")
     radius_m = _crater_point_radius_m(detections["diam_km"].to_numpy(), 0.6) + 200.0
     pixel = np.stack([detections["pixel_u"].to_numpy(), detections["pixel_v"].to_numpy()], 1)
     radius_px = detections["diam_km"].to_numpy() * 500.0 / detections["rho_meas_m"].to_numpy() \

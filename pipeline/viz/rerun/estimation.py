@@ -68,11 +68,8 @@ def log_estimation(rec: rr.RecordingStream, estimates, detections, trajectory) -
     rejected craters."""
     import polars as pl
 
-    from pipeline.core.math import frames
     from pipeline.io.tables import quats, xyz
 
-    theta_of = dict(zip(trajectory["frame"].to_list(), trajectory["theta_m_rad"].to_list(),
-                        strict=True))
     altitude_of = dict(zip(trajectory["frame"].to_list(), trajectory["altitude_m"].to_list(),
                            strict=True))
     for k, method in enumerate(estimates["method"].unique(maintain_order=True).to_list()):
@@ -106,13 +103,13 @@ def log_estimation(rec: rr.RecordingStream, estimates, detections, trajectory) -
 
         rejected = (m.select("frame", "rejected_det_index").explode("rejected_det_index")
                     .drop_nulls().rename({"rejected_det_index": "det_index"})
-                    .join(detections.select("frame", "det_index", "c_mci_x_m", "c_mci_y_m",
-                                            "c_mci_z_m", "diam_km"),
+                    .join(detections.select("frame", "det_index", "c_matched_mcmf_x_m",
+                                            "c_matched_mcmf_y_m", "c_matched_mcmf_z_m",
+                                            "diam_km"),
                           on=["frame", "det_index"], how="inner").sort("frame"))
         if rejected.height:
             rf = rejected["frame"].to_numpy()
-            c_mcmf = frames.mcmf_from_mci(xyz(rejected, "c_mci", "_m"),
-                                          np.array([theta_of[f] for f in rf]))
+            c_mcmf = xyz(rejected, "c_matched_mcmf", "_m")
             uniq, counts = np.unique(rf, return_counts=True)
             t_rej = np.array([t_s[np.searchsorted(frame, f)] for f in uniq])
             _points3d(rec, f"/world/moon/rejected/{method}", time_columns(uniq, t_rej), c_mcmf,
