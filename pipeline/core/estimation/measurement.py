@@ -235,16 +235,23 @@ def frame(c_mci_m: np.ndarray, u_body: np.ndarray, rho_m: np.ndarray, sigma_bear
     missing = np.isnan(rho_m)
     inv_b = np.broadcast_to(1.0 / np.asarray(sigma_bearing, dtype=float), (n,))
     top = float(inv_b.max()) if n else 0.0
-    c = np.ascontiguousarray(c_mci_m, dtype=float)
-    u = np.ascontiguousarray(u_body, dtype=float)
+    c = _kernel_array(c_mci_m)
+    u = _kernel_array(u_body)
     if missing.all():
-        return Frame(c, u, np.ascontiguousarray(inv_b), top, np.zeros(n), None, np.zeros(n))
+        return Frame(c, u, _kernel_array(inv_b), top, np.zeros(n), None, np.zeros(n))
     sigma_r = np.broadcast_to(np.asarray(sigma_range_m, dtype=float), (n,))
     if missing.any():
         sigma_r = np.where(missing, np.inf, sigma_r)
         rho_m = np.where(missing, 0.0, rho_m)
-    return Frame(c, u, np.ascontiguousarray(inv_b), top, np.ascontiguousarray(rho_m, dtype=float),
-                 sigma_r, np.ascontiguousarray(1.0 / sigma_r))
+    return Frame(c, u, _kernel_array(inv_b), top, _kernel_array(rho_m), sigma_r,
+                 _kernel_array(1.0 / sigma_r))
+
+
+def _kernel_array(a: np.ndarray) -> np.ndarray:
+    """`a` as C-ordered, writable float64 (copied only when it is not): the compiled kernels
+    are specialised on the layout and on the read-only flag (a table column's view is
+    read-only), and each variant compiles apart (~0.5 s each at first use)."""
+    return np.require(a, dtype=float, requirements=("C_CONTIGUOUS", "WRITEABLE"))
 
 
 def rounding_level(f: Frame, rho_pred_m: np.ndarray) -> float:
