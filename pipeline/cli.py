@@ -368,9 +368,20 @@ def detect_image(
     """Craters in any image: rim ellipses with a confidence (detections.parquet: image,
     centre_u_px, centre_v_px, semi_major_px, semi_minor_px, angle_rad, confidence; pixel (0, 0)
     the corner of the first pixel, u right, v down) and an overlay PNG per image."""
+    from pipeline.io.store import foreign_folder
     from pipeline.ops import detect_image as di
     from pipeline.ops.detectors import make_detector
+    from pipeline.workspace import workspace
 
+    if sun_azimuth_deg is not None and not math.isfinite(sun_azimuth_deg):
+        raise PipelineError(f"--sun-azimuth-deg {sun_azimuth_deg}: must be a finite angle (deg)")
+    ws = workspace()
+    target = out.resolve()
+    for folder in (target, *target.parents):  # never into a run's, campaign's or catalogue's
+        kind = foreign_folder(folder) or ("a run" if (folder / ".stages").exists() else None)
+        if kind is not None or folder == ws.resolve(Path("catalogue")).resolve():
+            raise PipelineError(f"--out {out}: inside {folder}, the folder of "
+                                f"{kind or 'the catalogues'}; give another folder")
     try:
         det = make_detector(detector, min_diameter_px=min_diameter_px, model=model)
     except (ValueError, FileNotFoundError) as exc:
@@ -423,6 +434,11 @@ def main() -> None:
         typer.secho(f"error: {exc}", fg="red", err=True)
         raise SystemExit(1) from None
     except KeyboardInterrupt:
+        typer.secho("error: interrupted; nothing partial was committed", fg="red", err=True)
+        raise SystemExit(130) from None
+    except RuntimeError as exc:  # Ctrl-C inside a DuckDB query arrives as its interrupt
+        if "interrupted" not in str(exc).lower():
+            raise
         typer.secho("error: interrupted; nothing partial was committed", fg="red", err=True)
         raise SystemExit(130) from None
     except OSError as exc:

@@ -5,6 +5,7 @@ workers are clamped to the cores; the preparation of many runs shows its progres
 
 from __future__ import annotations
 
+import json
 import socket
 import time
 from pathlib import Path
@@ -55,8 +56,17 @@ def test_an_invalid_first_run_is_a_status_and_the_outputs_are_written(workdir: P
     scores.write_bytes(bytes(data))
     assert run_campaign(spec, local=True)["ran"] == 1
     assert "not the file saved with the run" in " ".join(capsys.readouterr().err.split())
+    # an edited record (a draw off the spec's grid) is no record: the run reruns
+    record = json.loads(paths.done(rid).read_text())
+    record["draws"]["detection.p_identify"] = 0.123
+    paths.done(rid).write_text(json.dumps(record))
+    assert run_campaign(spec, local=True)["ran"] == 1
+    assert "not the record saved with the run (edited)" in " ".join(
+        capsys.readouterr().err.split())
     assert pl.read_parquet(paths.root / "campaign.parquet")["status"].unique().sort() \
         .to_list() == ["invalid_config", "ok"]
+    assert 0.123 not in pl.read_parquet(paths.root / "campaign.parquet")[
+        "detection.p_identify"].to_list()
 
 
 def test_a_damaged_part_is_left_out_of_the_outputs_not_read(workdir: Path, catalogue_db: Path,

@@ -148,6 +148,7 @@ def test_wrong_type_names_the_key(workdir, section, key, value, full_key):
     ("trajectory", "end_s", "-5.0", "trajectory.end_s"),
     ("render", "albedo", "0.5", "render.albedo"),
     ("identification", "mode", '"psychic"', "identification.mode"),
+    ("imu.gyro", "bias_correlation_s", "1e-300", "imu.gyro.bias_correlation_s"),  # white
 ], ids=lambda v: v if isinstance(v, str) and "." in v else None)
 def test_out_of_range_names_the_key(workdir, section, key, value, full_key):
     path = write_scenario("bad", default_with(section, key, value))

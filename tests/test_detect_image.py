@@ -54,7 +54,73 @@ def test_broken_and_empty_files_are_one_line(tmp_path: Path, monkeypatch, capsys
     assert "Traceback" not in out + err
     assert "broken.png: " in lines[0] and "empty file" in lines[1]
     assert "too small" in lines[2] and "no such file" in lines[3]
-    assert pl.read_parquet(tmp_path / "o" / "detections.parquet").height == 0
+    assert not (tmp_path / "o").exists()  # nothing written when an input cannot be used
+
+
+def _crater_image(path: Path) -> Path:
+    """A grey image with one dark-bright crater pair (the classical detector's crescents)."""
+    img = np.full((128, 128), 100, np.uint8)
+    yy, xx = np.mgrid[:128, :128]
+    r = np.hypot(xx - 64, yy - 64)
+    img[(r < 20) & (xx < 64)] = 40
+    img[(r < 20) & (xx >= 64)] = 200
+    Image.fromarray(img).save(path)
+    return path
+
+
+def test_a_failed_call_leaves_the_earlier_outputs(tmp_path: Path, monkeypatch, capsys) -> None:
+    good = _crater_image(tmp_path / "good.png")
+    out = tmp_path / "o"
+    code, _, _ = _run(monkeypatch, capsys, str(good), "--out", str(out), "--detector",
+                      "classical", "--sun-azimuth-deg", "0")
+    assert code == 0
+    before = (out / "detections.parquet").read_bytes()
+    truncated = tmp_path / "cut.png"
+    truncated.write_bytes(good.read_bytes()[:200])
+    for args in ([str(truncated)], [str(good), str(truncated)]):
+        code, _, err = _run(monkeypatch, capsys, *args, "--out", str(out), "--detector",
+                            "classical")
+        assert code == 1 and err.count("error: ") == 1 and "cut.png" in err
+        assert (out / "detections.parquet").read_bytes() == before
+    assert sorted(p.name for p in out.iterdir()) == ["detections.parquet", "good_overlay.png"]
+
+
+def test_inputs_that_would_be_named_alike_or_scored_wrongly_are_refused(
+        tmp_path: Path, monkeypatch, capsys) -> None:
+    a = _crater_image(tmp_path / "img.png")
+    (tmp_path / "b").mkdir()
+    b = _crater_image(tmp_path / "b" / "img.png")
+    labels = tmp_path / "l.txt"
+    labels.write_text("0 0.5 0.5 0.3 0.3\n")
+    nan_labels = tmp_path / "nan.txt"
+    nan_labels.write_text("0 0.5 0.5 nan 0.3\n")
+    float_img = tmp_path / "f.tif"
+    arr = np.full((64, 64), 0.1, np.float32)
+    arr[0, 0] = np.nan
+    Image.fromarray(arr).save(float_img)
+    for args, said in (([str(a), str(b)], "named as"), ([str(a), str(a)], "given twice"),
+                       ([str(a), str(b.with_name("c.png")), "--labels", str(labels)],
+                        "one label file for 2 images"),
+                       ([str(a), "--labels", str(nan_labels)], "label row 1"),
+                       ([str(float_img)], "not finite"),
+                       ([str(a), "--sun-azimuth-deg=nan"], "finite angle")):
+        if "c.png" in " ".join(args):
+            _crater_image(b.with_name("c.png"))
+        code, out, err = _run(monkeypatch, capsys, *args, "--out", str(tmp_path / "o"),
+                              "--detector", "classical")
+        assert code == 1 and said in err and "Traceback" not in out + err, (args, err)
+    assert not (tmp_path / "o").exists()
+
+
+def test_out_is_never_a_runs_or_the_catalogues_folder(workdir, monkeypatch, capsys) -> None:
+    img = _crater_image(workdir / "img.png")
+    run = workdir / "runs" / "r"
+    (run / ".stages").mkdir(parents=True)
+    (workdir / "catalogue").mkdir(exist_ok=True)
+    for out in (run / "detect", run, workdir / "catalogue" / "x"):
+        code, _, err = _run(monkeypatch, capsys, str(img), "--out", str(out))
+        assert code == 1 and "give another folder" in err
+        assert not out.exists() or out == run
 
 
 def test_blank_image_has_no_craters(tmp_path: Path, monkeypatch, capsys) -> None:

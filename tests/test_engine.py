@@ -13,6 +13,7 @@ import hashlib
 import importlib
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -20,6 +21,7 @@ import textwrap
 import time
 from pathlib import Path
 
+import duckdb
 import pytest
 from conftest import DEFAULT_TOML, REPO
 
@@ -39,6 +41,7 @@ FAKE_STAGES = '''
 """Fake stages for tests/test_engine.py."""
 
 import os
+import shutil
 import signal
 import sys
 from pathlib import Path
@@ -570,21 +573,59 @@ def test_dead_temporaries_are_swept_and_live_ones_kept(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == [live.name]
 
 
-@pytest.mark.parametrize("derived", ["run.duckdb", "manifest.json"])
+@pytest.mark.parametrize("derived", ["run.duckdb", "manifest.json", "garbage run.duckdb",
+                                     "garbage config.json"])
 def test_derived_files_are_rebuilt_when_missing_or_broken(fake, tmp_path, derived):
-    """run.duckdb and manifest.json are conveniences derived from the committed stages: the next
-    command rebuilds them even when every stage is up to date."""
+    """run.duckdb, manifest.json and config.json are conveniences derived from the committed
+    stages: the next command rebuilds them, missing or unreadable, even when every stage is up to
+    date."""
     root = tmp_path / "runs"
     fake.execute(root, DEFAULT_TOML, 1)
     store = RunStore("r", root)
     manifest = json.loads(store.manifest_path.read_text())
     if derived == "run.duckdb":
         store.duckdb_path.unlink()
-    else:
+    elif derived == "manifest.json":
         store.manifest_path.write_text("{")
+    else:
+        (store.run_dir / derived.split()[1]).write_text("hi\n")
     assert fake.execute(root, DEFAULT_TOML, 1) == []
     assert json.loads(store.manifest_path.read_text())["stages"] == manifest["stages"]
-    assert store.duckdb_path.is_file()
+    assert isinstance(json.loads((store.run_dir / "config.json").read_text()), dict)
+    duckdb.connect(str(store.duckdb_path), read_only=True).close()  # a database again
+
+
+@pytest.mark.parametrize("link", [".lock", ".stages"])
+def test_a_run_whose_own_file_is_a_link_elsewhere_is_refused(fake, tmp_path, link):
+    """The lock file and the stages folder are the run's own: as links they would have the lock
+    written (truncated) or the sweep delete elsewhere. Refused in one line; the target intact."""
+    root = tmp_path / "runs"
+    fake.execute(root, DEFAULT_TOML, 1)
+    store = RunStore("r", root)
+    elsewhere = tmp_path / "elsewhere"
+    if link == ".lock":
+        elsewhere.write_text("precious")
+        (store.run_dir / ".lock").unlink()
+    else:
+        shutil.move(store.run_dir / ".stages", elsewhere)
+        (elsewhere / "precious.txt").write_text("precious")
+    (store.run_dir / link).symlink_to(elsewhere)
+    with pytest.raises(StageInputError, match="a symbolic link"):
+        fake.execute(root, DEFAULT_TOML, 1)
+    assert (elsewhere.read_text() if link == ".lock"
+            else (elsewhere / "precious.txt").read_text()) == "precious"
+
+
+@pytest.mark.parametrize("text", [b'{"stage": "\xff\xfe"}', b"[1, 2]", b'{"outputs": 5}'])
+def test_a_stage_json_of_the_wrong_shape_is_no_commit(fake, tmp_path, text):
+    """Non-UTF-8 bytes or JSON of another shape in a stage.json: that stage is not committed
+    (rerun), never a traceback."""
+    root = tmp_path / "runs"
+    fake.execute(root, DEFAULT_TOML, 1)
+    store = RunStore("r", root)
+    (store.stage_dir("a") / "stage.json").write_bytes(text)
+    assert store.entry("a") is None
+    assert "a" in fake.execute(root, DEFAULT_TOML, 1)
 
 
 def test_every_command_sweeps_dead_temporaries_of_the_catalogue_folder(fake, workdir):
@@ -597,3 +638,25 @@ def test_every_command_sweeps_dead_temporaries_of_the_catalogue_folder(fake, wor
     leftover.write_bytes(b"half a database")
     assert fake.execute(root, DEFAULT_TOML, 1) == []
     assert not leftover.exists()
+
+
+def test_the_data_a_module_names_keys_it(tmp_path, monkeypatch):
+    """A module's `KEYED_DATA` files key its code as its source does: a replaced model reruns
+    the stages that detect with it (the learned detector's models key `render`)."""
+    module = tmp_path / "pkg" / "m.py"
+    models = tmp_path / "models"
+    models.mkdir()
+    (models / "w.onnx").write_bytes(b"weights 1")
+    sources = {"with": (module, b'KEYED_DATA = ("../models",)\n'), "without": (module, b"x = 1\n")}
+    monkeypatch.setattr(fingerprint, "_source", sources.get)
+    fingerprint._keyed_data.cache_clear()
+    first, none = fingerprint._keyed_data("with"), fingerprint._keyed_data("without")
+    (models / "w.onnx").write_bytes(b"weights 2")
+    fingerprint._keyed_data.cache_clear()
+    assert none == b"" and first != b"" and fingerprint._keyed_data("with") != first
+    monkeypatch.undo()
+    fingerprint._keyed_data.cache_clear()
+    assert fingerprint._keyed_data("pipeline.ops.detectors") != b""
+    from pipeline.stages import DAG
+
+    assert "pipeline.ops.detectors" in fingerprint.closure(DAG["render"].code, VISUAL_LAYER)

@@ -338,6 +338,21 @@ def test_a_slow_query_is_stopped_at_the_timeout(project):
     assert time.perf_counter() - t0 < 10
 
 
+def test_a_huge_result_is_refused_before_it_is_fetched(project):
+    """A result past the row limit is one line within the timeout, not minutes of printing."""
+    t0 = time.perf_counter()
+    with pytest.raises(SqlError, match="more than 1,000,000 rows"):
+        query("SELECT range FROM range(100000000)", timeout_s=30)
+    assert time.perf_counter() - t0 < 20
+    assert query("SELECT count(*) AS n FROM range(100000000)") == "n\n100000000\n"
+
+
+@pytest.mark.parametrize("timeout_s", [0.0, 1e308])
+def test_a_timeout_past_a_day_or_not_positive_is_refused(project, timeout_s):
+    with pytest.raises(SqlError, match="--timeout-s"):
+        query("SELECT 1", timeout_s=timeout_s)
+
+
 # --- output ---------------------------------------------------------------------------------------
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import hashlib
 import json
 import os
 from collections.abc import Iterator
@@ -70,9 +71,15 @@ def save_result(paths: CampaignPaths, result: dict[str, Any], draws: dict[str, A
         os.replace(tmp, target)
     meta = {k: result[k] for k in ("index", "run_id", "status", "error", "wall_s", "node",
                                    "run_key")}
-    atomic_write_text(paths.done(rid), json.dumps(
-        {**meta, "seed": draws["seed"], "draws": draws, "parts": digests}, indent=1,
-        default=str) + "\n")
+    body = json.loads(json.dumps({**meta, "seed": draws["seed"], "draws": draws,
+                                  "parts": digests}, default=str))
+    atomic_write_text(paths.done(rid), json.dumps({**body, "digest": _digest(body)}, indent=1)
+                      + "\n")
+
+
+def _digest(body: dict[str, Any]) -> str:
+    """sha256 of a done marker's content (its keys sorted), the marker's own digest."""
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
 
 def read_done(paths: CampaignPaths, run_id: str) -> dict[str, Any] | None:
@@ -91,6 +98,8 @@ def damaged_part(paths: CampaignPaths, meta: dict[str, Any]) -> str | None:
     recorded = meta.get("parts")
     if not isinstance(recorded, dict):
         return f"{paths.done(rid)}: no digest of its parts recorded"
+    if meta.get("digest") != _digest({k: v for k, v in meta.items() if k != "digest"}):
+        return f"{paths.done(rid)}: not the record saved with the run (edited)"
     for part in PARTS:
         f = paths.part(rid, part)
         promised = recorded.get(part)

@@ -14,6 +14,9 @@ IMU_GRADES = ("navigation", "tactical", "mems")
 ALTIMETER_FAULTS = ("none", "bias", "dropout")
 MAX_IMU_SAMPLES = 5_000_000  # ~0.5 GB of increments and attitudes in memory (1 kHz over 5,000 s)
 
+# the shortest bias correlation time accepted (s): a tenth of the fastest IMU's sample (10 kHz)
+MIN_CORRELATION_S = 1e-5
+
 
 @dataclass(frozen=True)
 class GyroConfig:
@@ -40,12 +43,14 @@ class AccelConfig:
 
 
 def _check_overrides(section: GyroConfig | AccelConfig, key: str) -> None:
-    """Each IMU error override is finite and >= 0 (a correlation time > 0), or "grade"."""
+    """Each IMU error override is finite and >= 0 (a correlation time at least
+    MIN_CORRELATION_S: shorter, the bias is white noise at any IMU rate and its Gauss-Markov
+    model's discrete covariance underflows), or "grade"."""
     for f in dataclasses.fields(section):
         value = getattr(section, f.name)
         if value is not None:
-            _num(value, f"{key}.{f.name}", 0.0, 1e9, lo_open=f.name == "bias_correlation_s",
-                 why='or "grade"')
+            lo = MIN_CORRELATION_S if f.name == "bias_correlation_s" else 0.0
+            _num(value, f"{key}.{f.name}", lo, 1e9, why='or "grade"')
 
 
 def _triad(preset: imu.TriadErrors, over: GyroConfig | AccelConfig) -> imu.TriadErrors:

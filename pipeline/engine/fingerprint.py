@@ -6,7 +6,9 @@ errors, the CLI), whose changes do not change what a stage computes. The config 
 besides loading, it derives values stages use (the navigator's noise, the jitter horizon, the
 windows). A stage's computation is keyed without the visual layer (`exclude`: `pipeline.viz`,
 which draws and never computes); its visuals are keyed on their own code. Editing a recording
-thus redraws that stage's recording only.
+thus redraws that stage's recording only. A module that computes with data files (a trained
+model) names them in a module-level `KEYED_DATA` tuple of paths relative to itself (a folder:
+every file in it): their bytes key it as its source does.
 """
 
 from __future__ import annotations
@@ -102,11 +104,36 @@ def closure(roots: tuple[str, ...], exclude: tuple[str, ...] = ()) -> tuple[str,
 
 
 @cache
+def _keyed_data(module: str) -> bytes:
+    """sha256 of the files `module` names in its `KEYED_DATA` (b"" when it names none)."""
+    found = _source(module)
+    if found is None:
+        return b""
+    path, text = found
+    names: tuple[str, ...] = ()
+    for node in ast.parse(text).body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "KEYED_DATA"
+                                                for t in node.targets):
+            names = tuple(ast.literal_eval(node.value))
+    if not names:
+        return b""
+    h = hashlib.sha256()
+    for name in names:
+        target = (path.parent / name).resolve()
+        files = sorted(p for p in target.rglob("*") if p.is_file()) if target.is_dir() \
+            else [target] if target.is_file() else []
+        for f in files:
+            h.update(str(f.relative_to(path.parent.parent)).encode() + b"\0" + f.read_bytes())
+    return h.digest()
+
+
+@cache
 def code_hash(roots: tuple[str, ...], exclude: tuple[str, ...] = ()) -> str:
-    """sha256 (16 hex) over the names and sources of `closure(roots, exclude)`."""
+    """sha256 (16 hex) over the names and sources of `closure(roots, exclude)`, and the data
+    files they name (`KEYED_DATA`)."""
     h = hashlib.sha256()
     for m in closure(roots, exclude):
         found = _source(m)
         if found is not None:
-            h.update(m.encode() + b"\0" + found[1] + b"\0")
+            h.update(m.encode() + b"\0" + found[1] + b"\0" + _keyed_data(m))
     return h.hexdigest()[:16]

@@ -44,6 +44,10 @@ from pipeline.workspace import Workspace, workspace
 
 DEFAULT_DB = "catalogue/craters.duckdb"
 CATALOGUE_ALIAS = "craters"
+# the most rows a query may return (printing them takes ~7 s a million)
+RESULT_ROW_LIMIT = 1_000_000
+# the longest --timeout-s (s): a day
+MAX_TIMEOUT_S = 86_400.0
 # the detections table as stored; `detections` is the view that adds c_mci and the truth's bearing
 # and range
 STORED_DETECTIONS = "detections_stored"
@@ -201,9 +205,11 @@ def _attach(con: duckdb.DuckDBPyConnection, catalogue: Path, alias: str = CATALO
 # --- running queries -----------------------------------------------------------------------------
 
 
-def execute(session: Session, query: str, timeout_s: float = 60.0) -> Result:
+def execute(session: Session, query: str, timeout_s: float = 60.0,
+            row_limit: int = RESULT_ROW_LIMIT) -> Result:
     """Run `query` (checked: reading statements only) and return the last statement's result;
-    interrupted after `timeout_s` seconds (SqlTimeout)."""
+    interrupted after `timeout_s` seconds (SqlTimeout); a result of more than `row_limit` rows
+    is refused (SqlError) before it is fetched whole."""
     statements = check_query(query)
     con = session.con
     fired = threading.Event()
@@ -221,7 +227,10 @@ def execute(session: Session, query: str, timeout_s: float = 60.0) -> Result:
         relation = con.sql(statements[-1])
         if relation is None:
             return Result([], pa.table({}))
-        columns, table = relation.columns, relation.to_arrow_table()
+        columns, table = relation.columns, relation.limit(row_limit + 1).to_arrow_table()
+        if table.num_rows > row_limit:
+            raise SqlError(f"the result has more than {row_limit:,} rows: add a LIMIT, a WHERE "
+                           "or an aggregate (or read the Parquet files with DuckDB itself)")
     except duckdb.InterruptException:
         if fired.is_set():
             raise SqlTimeout(f"query stopped after {timeout_s:g} s (--timeout-s)") from None
@@ -274,8 +283,8 @@ def run_query(query: str | None, run: str | None = None, db: str | None = None,
         raise SqlError(f"--format {fmt!r}: use one of {', '.join(FORMATS)}")
     if max_rows < 1:
         raise SqlError(f"--max-rows {max_rows}: must be at least 1")
-    if not timeout_s > 0:
-        raise SqlError(f"--timeout-s {timeout_s:g}: must be > 0")
+    if not 0 < timeout_s <= MAX_TIMEOUT_S:
+        raise SqlError(f"--timeout-s {timeout_s:g}: must be > 0 and at most {MAX_TIMEOUT_S:g} s")
     if query is not None:
         check_query(query)  # refuse before opening anything
     out = sys.stdout if out is None else out

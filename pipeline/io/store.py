@@ -110,9 +110,10 @@ class RunStore:
         if not path.is_file():
             return None
         try:
-            return json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError):
+            entry = json.loads(path.read_text())
+        except (OSError, ValueError):  # unreadable, not UTF-8, not JSON: not committed
             return None
+        return entry if _well_formed(entry) else None
 
     def info(self, stage: str) -> dict[str, Any]:
         """The committed entry's facts of `stage` (its `info`); StageInputError when it never
@@ -254,7 +255,11 @@ class RunStore:
             raise StageInputError(f"{self.run_dir}: the folder of {kind} {self.run_id!r}, not "
                                   "a run's; give the run another --run-id")
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.run_dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+        for own in (self.run_dir / ".lock", self.stages_dir):
+            if own.is_symlink():  # ours are never links: one would write or sweep elsewhere
+                raise StageInputError(f"{own}: a symbolic link, not the run's own file or "
+                                      "folder; remove it")
+        fd = os.open(self.run_dir / ".lock", os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
         try:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -335,7 +340,8 @@ class RunStore:
             return
         try:
             ok = (json.loads(self.manifest_path.read_text()).get("stages") == committed
-                  and self.duckdb_path.is_file() and (self.run_dir / "config.json").is_file())
+                  and isinstance(json.loads((self.run_dir / "config.json").read_text()), dict)
+                  and _opens(self.duckdb_path))
         except (OSError, ValueError, AttributeError):
             ok = False
         if not ok:
@@ -369,6 +375,24 @@ class RunStore:
         finally:
             con.close()
         os.replace(tmp, self.duckdb_path)
+
+
+def _well_formed(entry: Any) -> bool:
+    """Whether a stage.json holds an entry of the shapes readers rely on (an object, its
+    outputs an object of objects)."""
+    outputs = entry.get("outputs", {}) if isinstance(entry, dict) else None
+    return isinstance(outputs, dict) and all(isinstance(v, dict) for v in outputs.values())
+
+
+def _opens(db: Path) -> bool:
+    """Whether `db` is a DuckDB file that opens (read-only)."""
+    if not db.is_file():
+        return False
+    try:
+        duckdb.connect(str(db), read_only=True).close()
+    except duckdb.Error:
+        return False
+    return True
 
 
 def detections_view(detections: str, trajectory: str) -> str:

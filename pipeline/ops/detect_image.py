@@ -14,6 +14,7 @@ the first pixel, u right, v down; the Sun's azimuth in the image is from +u towa
 from __future__ import annotations
 
 import csv
+import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,8 @@ from pipeline.ops.render import match_detections
 
 MAX_PIXELS = 400_000_000  # 20,000 x 20,000
 OVERLAY_MAX_PX = 4096  # overlays are scaled down to this long side
+# a float image is clipped to these percentiles of its pixels (%, each side): its outliers
+FLOAT_CLIP_PERCENT = 0.01
 SIZE_BINS_PX = (10.0, 20.0, 50.0, np.inf)
 DETECTIONS_SCHEMA: dict[str, type[pl.DataType]] = {
     "image": pl.String, "centre_u_px": pl.Float64, "centre_v_px": pl.Float64,
@@ -70,6 +73,17 @@ def read_image(path: Path) -> np.ndarray:
     if arr.ndim != 2 or min(arr.shape) < 8:
         raise ImageInputError(f"{path}: {arr.shape[1] if arr.ndim > 1 else arr.size} x "
                               f"{arr.shape[0]} px is too small to hold a crater (8 px at least)")
+    if arr.dtype.kind == "f":
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
+        if bad:
+            raise ImageInputError(f"{path}: {bad:,} pixels are not finite (NaN or inf): mask or "
+                                  "fill them first")
+        # a float image's scale is its own: a hot pixel (1e30) must not set it
+        lo, hi = np.percentile(arr[::max(1, arr.shape[0] // 1024), ::max(1, arr.shape[1] // 1024)],
+                               [FLOAT_CLIP_PERCENT, 100.0 - FLOAT_CLIP_PERCENT])
+        if not hi > lo:
+            raise ImageInputError(f"{path}: the image is flat (all pixels {lo:g})")
+        arr = np.clip(arr, lo, hi)
     return arr
 
 
@@ -94,19 +108,27 @@ def read_labels(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndar
     except (OSError, UnicodeDecodeError) as exc:
         raise ImageInputError(f"{path}: cannot read the labels ({exc})") from None
     first = text.lstrip().splitlines()[0] if text.strip() else ""
+    kind = "a crater label CSV (ID,X,Y,W,H,C_X,CY) nor YOLO text (class xc yc w h)"
     try:
         if "C_X" in first:
             rows = list(csv.DictReader(text.splitlines()))
-            c = np.array([[float(r["C_X"]), float(r["CY"])] for r in rows]).reshape(-1, 2)
-            d = np.array([0.5 * (float(r["W"]) + float(r["H"])) for r in rows])
-            return c, d
-        vals = np.array([[float(x) for x in line.split()[1:5]]
-                         for line in text.splitlines() if line.strip()]).reshape(-1, 4)
-    except (KeyError, ValueError, IndexError) as exc:
-        raise ImageInputError(f"{path}: not a crater label CSV (ID,X,Y,W,H,C_X,CY) nor YOLO "
-                              f"text (class xc yc w h): {exc}") from None
+            vals = np.array([[float(r["C_X"]), float(r["CY"]), float(r["W"]), float(r["H"])]
+                             for r in rows]).reshape(-1, 4)
+        else:
+            lines = [ln for ln in text.splitlines() if ln.strip()]
+            if any(len(ln.split()) < 5 for ln in lines):
+                raise ValueError("a row with fewer than 5 fields")
+            vals = np.array([[float(x) for x in ln.split()[1:5]] for ln in lines]).reshape(-1, 4)
+    except (KeyError, ValueError, IndexError, TypeError) as exc:
+        raise ImageInputError(f"{path}: not {kind}: {exc}") from None
+    if not len(vals):
+        raise ImageInputError(f"{path}: no labels in it (not {kind}?)")
+    bad = ~(np.isfinite(vals).all(axis=1) & (vals[:, 2] > 0) & (vals[:, 3] > 0))
+    if bad.any():
+        raise ImageInputError(f"{path}: label row {int(np.flatnonzero(bad)[0]) + 1}: centre and "
+                              f"size must be finite and the size > 0, got {vals[bad][0].tolist()}")
     h, w = shape
-    if vals.size and np.all(vals <= 1.0):
+    if np.all(vals <= 1.0):
         vals = vals * np.array([w, h, w, h])
     return vals[:, :2], 0.5 * (vals[:, 2] + vals[:, 3])
 
@@ -244,52 +266,92 @@ def run(paths: list[Path], detector: Detector, out_dir: Path, sun_azimuth_deg: f
         labels: Path | None = None) -> tuple[list[str], int]:
     """`just detect-image`: each image read, detected, scored against its labels when given,
     its overlay written (`<stem>_overlay.png`); then `detections.parquet` of all. Returns the
-    lines to print and the number of images that could not be read (each said in one line)."""
+    lines to print and the number of inputs that could not be used (each said in one line).
+    Every input is checked before any is detected, and the outputs are written together or not
+    at all: a failed call leaves the folder's earlier outputs as they were."""
+    import shutil
     import time
 
-    lines: list[str] = []
+    lines = _check_inputs(paths, labels)
+    if lines:
+        return lines, len(lines)
     parts: list[pl.DataFrame] = []
-    failed = 0
-    out_dir.mkdir(parents=True, exist_ok=True)
     pooled: list[pl.DataFrame] = []
+    out_dir.mkdir(parents=True, exist_ok=True)
+    staging = out_dir / f".detect-image-{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir()
+    try:
+        written: list[str] = []
+        for path in paths:
+            img = read_image(path)
+            lab_file = labels_for(labels, path) if labels is not None else None
+            lab = read_labels(lab_file, img.shape) if lab_file is not None else None
+            t0 = time.perf_counter()
+            det, said = detect_image(detector, img, sun_azimuth_deg)
+            ms = 1e3 * (time.perf_counter() - t0)
+            parts.append(table(path.name, det))
+            name = f"{path.stem}_overlay.png"
+            overlay(staging / name, img, det, lab)
+            written.append(name)
+            lines.append(f"{path.name}: {img.shape[1]} x {img.shape[0]} px, {len(det)} craters "
+                         f"({detector.name}, {ms:.0f} ms); {said}; overlay {out_dir / name}")
+            if lab is not None:
+                sc = score(det, *lab)
+                pooled.append(sc.table)
+                lines.extend(_score_lines(sc, f"  against {lab_file}"))
+        if len(pooled) > 1:
+            total = pl.concat(pooled).group_by("diam_lo_px", "diam_hi_px",
+                                               maintain_order=True).agg(
+                pl.col("n_labels", "n_found", "n_detections", "n_matched").sum()).with_columns(
+                recall=pl.col("n_found") / pl.col("n_labels"),
+                precision=pl.col("n_matched") / pl.col("n_detections")).fill_nan(None)
+            lines.extend(_score_lines(Scores(total), f"  pooled over {len(pooled)} images"))
+        frame = pl.concat(parts) if parts else pl.DataFrame(schema=DETECTIONS_SCHEMA)
+        write_parquet(frame, staging / "detections.parquet")
+        for name in [*written, "detections.parquet"]:  # renames within one folder
+            os.replace(staging / name, out_dir / name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    lines.append(f"wrote {out_dir / 'detections.parquet'} ({frame.height:,} craters in "
+                 f"{len(parts)} images)")
+    return lines, 0
+
+
+def _check_inputs(paths: list[Path], labels: Path | None) -> list[str]:
+    """One error line per input that cannot be used (nothing when all can): an unreadable
+    image or label file, an image given twice or two of one name (the table's `image` column
+    and the overlays are named by it), one label file for several images."""
+    errors: list[str] = []
+    seen: dict[str, Path] = {}
+    for path in paths:
+        try:
+            path.name.encode("utf-8")
+        except UnicodeEncodeError:
+            shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+            errors.append(f"error: {shown}: the file name is not UTF-8 (the table's `image` "
+                          "column holds it); rename it")
+            return errors
+        other = seen.get(path.name)
+        if other is not None:
+            same = other.resolve() == path.resolve()
+            errors.append(f"error: {path}: {'given twice' if same else f'named as {other}'}; "
+                          "the table and the overlays name the images by their file names")
+        seen[path.name] = path
+    if labels is not None and labels.is_file() and len(paths) > 1:
+        errors.append(f"error: --labels {labels}: one label file for {len(paths)} images; give "
+                      "a folder of <image stem>.txt or .csv files")
     for path in paths:
         try:
             img = read_image(path)
-            lab = None
             lab_file = labels_for(labels, path) if labels is not None else None
             if labels is not None and lab_file is None:
                 raise ImageInputError(f"{path}: no label file for it in {labels}")
             if lab_file is not None:
-                lab = read_labels(lab_file, img.shape)
+                read_labels(lab_file, img.shape)
         except ImageInputError as exc:
-            lines.append(f"error: {exc}")
-            failed += 1
-            continue
-        t0 = time.perf_counter()
-        det, said = detect_image(detector, img, sun_azimuth_deg)
-        ms = 1e3 * (time.perf_counter() - t0)
-        parts.append(table(path.name, det))
-        over = out_dir / f"{path.stem}_overlay.png"
-        overlay(over, img, det, lab)
-        lines.append(f"{path.name}: {img.shape[1]} x {img.shape[0]} px, {len(det)} craters "
-                     f"({detector.name}, {ms:.0f} ms); {said}; overlay {over}")
-        if lab is not None:
-            sc = score(det, *lab)
-            pooled.append(sc.table)
-            lines.extend(_score_lines(sc, f"  against {lab_file}"))
-    if len(pooled) > 1:
-        total = pl.concat(pooled).group_by("diam_lo_px", "diam_hi_px", maintain_order=True).agg(
-            pl.col("n_labels", "n_found", "n_detections", "n_matched").sum()).with_columns(
-            recall=pl.col("n_found") / pl.col("n_labels"),
-            precision=pl.col("n_matched") / pl.col("n_detections")).fill_nan(None)
-        lines.extend(_score_lines(Scores(total), f"  pooled over {len(pooled)} images"))
-    out = out_dir / "detections.parquet"
-    frame = pl.concat(parts) if parts else pl.DataFrame(schema=DETECTIONS_SCHEMA)
-    tmp = out.with_suffix(".parquet.tmp")
-    write_parquet(frame, tmp)
-    tmp.replace(out)
-    lines.append(f"wrote {out} ({frame.height:,} craters in {len(parts)} images)")
-    return lines, failed
+            errors.append(f"error: {exc}")
+    return errors
 
 
 def _score_lines(sc: Scores, head: str) -> list[str]:

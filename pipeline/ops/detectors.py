@@ -23,6 +23,9 @@ from pipeline.core.vision.detectors.learned import LearnedDetector, LearnedOptio
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
 DEFAULT_MODEL = MODELS / "crater_detector.onnx"
+# the trained models key the stages that detect with them (`pipeline.engine.fingerprint`): a
+# retrained or replaced model reruns them
+KEYED_DATA = ("../models",)
 
 
 @dataclass(frozen=True)
@@ -55,7 +58,11 @@ def _session(path: str, threads: int) -> object:
     so.inter_op_num_threads = 1
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    return ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+    try:
+        return ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime's own classes (InvalidProtobuf, Fail, ...)
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"{path}: not a usable ONNX model ({first[:200]})") from None
 
 
 def model_facts(path: Path = DEFAULT_MODEL) -> dict:

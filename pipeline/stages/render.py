@@ -31,6 +31,7 @@ from pipeline.core.sensors import exposure, height_map
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.engine.progress import progress_bar
 from pipeline.engine.stage import Stage, StageContext, StageResult
+from pipeline.errors import StageInputError
 from pipeline.io import ephemeris
 from pipeline.io.catalogue import check_catalogue_unchanged, load_recorded_catalogue
 from pipeline.io.images import encode_png
@@ -48,9 +49,12 @@ def options(cfg: RunConfig) -> ops_render.RenderOptions:
     """What the renderer and the detector do (config `render`, the detector's minimum size from
     `detection.detect_min_diameter_px`; `render.detector` chooses it)."""
     r = cfg.render
-    detector = None if r.detector == "classical" else make_detector(
-        r.detector, min_diameter_px=cfg.detection.detect_min_diameter_px,
-        blur_sigma_px=r.blur_sigma_px)
+    try:
+        detector = None if r.detector == "classical" else make_detector(
+            r.detector, min_diameter_px=cfg.detection.detect_min_diameter_px,
+            blur_sigma_px=r.blur_sigma_px)
+    except (ValueError, FileNotFoundError) as exc:
+        raise StageInputError(f"render.detector = {r.detector!r}: {exc}") from None
     return ops_render.RenderOptions(detector=detector,
         terrain=height_map.TerrainOptions(albedo=r.albedo,
                                       roughness_rms_slope_deg=r.roughness_rms_slope_deg),

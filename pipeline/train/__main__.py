@@ -17,6 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+try:  # the optional `train` extra: one line without it, not a traceback
+    import torch  # noqa: F401
+except ModuleNotFoundError:
+    sys.exit('error: training needs PyTorch (the `train` extra): pip install -e ".[train]"')
+
 from pipeline.core.sensors.scenes import SceneOptions
 from pipeline.train import data
 from pipeline.train.fit import TrainOptions, export, facts_of, finetune, pretrain

@@ -76,6 +76,10 @@ def load_catalogue(db_path: Path) -> Catalogue:
     try:
         t = con.execute("SELECT crater_id, diam_km, x_m, y_m, z_m, tile FROM craters "
                         "ORDER BY tile, crater_id").fetchnumpy()
+    except duckdb.Error as exc:  # a damaged file (corrupt blocks, a table gone)
+        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        raise CatalogueError(f"{db_path}: the catalogue database is damaged ({first}); rebuild "
+                             "it with `just ingest`") from None
     finally:
         con.close()
     r = np.stack([t["x_m"], t["y_m"], t["z_m"]], axis=1)
