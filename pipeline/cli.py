@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import sys
 from pathlib import Path
 from typing import Annotated, Any
@@ -305,16 +306,35 @@ def compare(
                                k)
         if bias is not None:
             biases.append(bias)
-    folder = workspace().runs_dir / validate_run_id(f"compare-{name or '_'.join(runs)}")
+    try:
+        folder = workspace().runs_dir / validate_run_id(f"compare-{name or '_'.join(runs)}")
+    except PipelineError as exc:
+        raise PipelineError(f"compare: {exc}; name the comparison with --name") from None
     kind = foreign_folder(folder)
     if (folder / MANIFEST_FILE).is_file() or (kind is not None and kind != "comparison"):
         raise PipelineError(f"compare: {folder}: the folder of {kind or 'a run'}, not a "
                             "comparison's; give the comparison another --name")
     folder.mkdir(parents=True, exist_ok=True)
     atomic_write_text(folder / COMPARE_MARKER, json.dumps({"runs": runs}, indent=2) + "\n")
-    path = compare_report.write_compare_report(folder, pl.concat(series, how="diagonal"),
-                                       pl.concat(windows, how="diagonal"),
-                                       pl.concat(biases) if biases else None)
+    # the report and its figures made in a staging folder, then moved in together: a failed
+    # comparison leaves the previous one whole
+    staging = folder / f".tmp-{os.getpid()}-compare"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir()
+    try:
+        made = compare_report.write_compare_report(staging, pl.concat(series, how="diagonal"),
+                                                   pl.concat(windows, how="diagonal"),
+                                                   pl.concat(biases) if biases else None)
+        made_files = sorted(staging.iterdir(), key=lambda p: p == made)  # the report last
+        for f in made_files:
+            if (folder / f.name).is_dir():
+                raise PipelineError(f"compare: {folder / f.name}: a folder where the comparison "
+                                    "writes a file; remove it")
+        for f in made_files:
+            os.replace(f, folder / f.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    path = folder / made.name
     typer.echo(f"wrote {path} and its figures (fig_visible.png, fig_used.png, fig_errors.png"
                f"{', fig_centre_bias.png' if biases else ''})")
 

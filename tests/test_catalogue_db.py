@@ -408,6 +408,15 @@ def test_format_fingerprint_follows_the_format_used_not_the_file(project):
     assert fp(cat.load_formats()["my_survey"]) != fp(before["my_survey"])
 
 
+def test_a_format_reading_one_column_as_two_fields_is_refused(project):
+    """lat = lon = diam from one column would ingest every crater as lat = lon = diam."""
+    project.local_formats_toml.write_text(LOCAL_FORMAT.replace(
+        'lon = "longitude", diam = "size_m"', 'lon = "latitude", diam = "latitude"'))
+    with pytest.raises(cat.CatalogueError, match="each field to its own column") as exc:
+        cat.load_formats()
+    assert str(project.local_formats_toml) in str(exc.value)
+
+
 def test_shipped_formats_come_from_the_checkout_when_the_workspace_has_none(project):
     project.sources_toml.unlink()
     project.local_formats_toml.write_text(LOCAL_FORMAT)

@@ -148,6 +148,10 @@ def open_session(run: str | None = None, db: str | Path | None = None,
     if run is not None:
         run_dir = check_run(run, ws.runs_dir)
         run_catalogue_db = run_catalogue(run_dir, ws)
+        if db is not None and ws.resolve(db).resolve() != run_catalogue_db.resolve():
+            raise SqlSessionError(f"--db {db}: run {run!r} used the catalogue "
+                                  f"{run_catalogue_db}; query its tables with that one (leave "
+                                  "out --db)")
         tables = run_tables(run, ws.runs_dir)
     catalogue: Path | None = (ws.resolve(db) if db is not None
                               else run_catalogue_db or ws.resolve(DEFAULT_DB))
@@ -197,8 +201,9 @@ def _attach(con: duckdb.DuckDBPyConnection, catalogue: Path, alias: str = CATALO
         if "Could not set lock" in text or "file handle conflict" in text:
             raise SqlSessionError(f"{catalogue}: the catalogue is locked by another process (an "
                                   "ingest writing it?); try again when it has finished") from None
-        if "not a valid DuckDB database" in text:
-            raise SqlSessionError(f"{catalogue}: not a DuckDB database") from None
+        if "not a valid DuckDB database" in text or "in-memory database" in text:
+            raise SqlSessionError(f"{catalogue}: not a DuckDB database (--db takes a .duckdb "
+                                  "file; a run's Parquet tables: --run)") from None
         raise SqlSessionError(f"{catalogue}: cannot open the catalogue ({text})") from None
 
 
@@ -222,8 +227,8 @@ def execute(session: Session, query: str, timeout_s: float = 60.0,
     timer.daemon = True
     timer.start()
     try:
-        for statement in statements[:-1]:
-            con.execute(statement)
+        for statement in statements[:-1]:  # their results are not shown: each one finished
+            con.execute(statement).fetchall()
         relation = con.sql(statements[-1])
         if relation is None:
             return Result([], pa.table({}))

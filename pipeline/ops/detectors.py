@@ -10,6 +10,7 @@ how) unless a model path is given.
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import os
 from dataclasses import dataclass, field, replace
@@ -51,6 +52,10 @@ def _session(path: str, threads: int) -> object:
     """An ONNX Runtime session (cached per file and thread count)."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"no detector model at {path} (train one: just train-detector)")
+    recorded = model_facts(Path(path)).get("sha256")
+    if recorded is not None and hashlib.sha256(Path(path).read_bytes()).hexdigest() != recorded:
+        raise ValueError(f"{path}: not the model its training recorded (sha256 differs from "
+                         f"{Path(path).with_suffix('.json').name}); retrain or restore it")
     import onnxruntime as ort
 
     so = ort.SessionOptions()
@@ -66,9 +71,14 @@ def _session(path: str, threads: int) -> object:
 
 
 def model_facts(path: Path = DEFAULT_MODEL) -> dict:
-    """The training record beside a model (its .json), {} when absent."""
+    """The training record beside a model (its .json: the training's facts and the model's
+    sha256), {} when absent or unreadable."""
     meta = Path(path).with_suffix(".json")
-    return json.loads(meta.read_text()) if meta.is_file() else {}
+    try:
+        facts = json.loads(meta.read_text()) if meta.is_file() else {}
+    except (OSError, ValueError):
+        return {}
+    return facts if isinstance(facts, dict) else {}
 
 
 def make_detector(name: str, *, min_diameter_px: float = 10.0, blur_sigma_px: float = 0.0,

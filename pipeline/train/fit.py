@@ -14,6 +14,7 @@ one-cycle learning rate (Smith & Topin 2019).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import multiprocessing as mp
 import subprocess
@@ -173,7 +174,9 @@ def export(model: CraterNet, path: Path, facts: dict) -> None:
                                     "maps": {2: "height4", 3: "width4"}},
                       opset_version=17, dynamo=False)
     tmp.replace(path)
-    path.with_suffix(".json").write_text(json.dumps(facts, indent=2) + "\n")
+    sha256 = hashlib.sha256(path.read_bytes()).hexdigest()  # checked where it is loaded
+    path.with_suffix(".json").write_text(json.dumps({**facts, "sha256": sha256}, indent=2)
+                                         + "\n")
 
 
 def git_commit() -> str:

@@ -139,6 +139,8 @@ def _parse_format(path: Path, name: str, d: Any, line: int | None) -> SourceForm
             or not {"lat", "lon", "diam"} <= set(columns)
             or not all(isinstance(v, str) for v in columns.values())):
         raise bad("columns", "must map lat, lon, diam (and optionally id) to column names")
+    if len(set(columns.values())) < len(columns):
+        raise bad("columns", "must map each field to its own column")
     if not isinstance(also, list) or not all(isinstance(v, str) for v in also):
         raise bad("also", "must be a list of column names")
     if d["lon_convention"] not in LON_RANGES:
