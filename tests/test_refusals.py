@@ -71,6 +71,21 @@ def test_non_utf8_queries_and_an_infinite_timeout_are_one_line(workdir, monkeypa
     assert_clear_error(code, err, "--timeout-s inf", "finite")
 
 
+@pytest.mark.parametrize("kind", ["folder", "fifo", "missing"])
+def test_a_source_that_is_no_file_says_what_it_is_and_leaves_no_run(workdir, monkeypatch,
+                                                                    capsys, kind):
+    source = workdir / f"src_{kind}.csv"
+    if kind == "folder":
+        source.mkdir()
+    elif kind == "fifo":
+        os.mkfifo(source)
+    code, _, err = main(monkeypatch, capsys, "ingest", "--source", str(source))
+    said = {"folder": "a folder, not a catalogue file", "fifo": "not a regular file",
+            "missing": "catalogue file not found"}[kind]
+    assert_clear_error(code, err, str(source), said)
+    assert not (workdir / "runs" / source.stem).exists()  # no empty run folder left
+
+
 def test_a_non_utf8_spec_is_one_line_naming_it(workdir, monkeypatch, capsys):
     path = workdir / "runs" / "campaigns" / "bytes.toml"
     path.parent.mkdir(parents=True)

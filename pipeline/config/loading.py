@@ -125,7 +125,9 @@ def _known_scenarios() -> list[str]:
 
 def _read_scenario(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     if not path.is_file():
-        raise ConfigError(f"{path}: scenario not found (known scenarios: {_known_scenarios()})")
+        what = ("a folder, not a scenario file" if path.is_dir() else "not a regular file"
+                if path.exists() else "scenario not found")
+        raise ConfigError(f"{path}: {what} (known scenarios: {_known_scenarios()})")
     if path.resolve() in seen:
         raise ConfigError(f"{path}: `extends` forms a cycle")
     try:

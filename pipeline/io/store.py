@@ -25,6 +25,7 @@ holding the same outputs (hard links) and new visuals, so the digest, and what i
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import json
@@ -254,6 +255,7 @@ class RunStore:
         if kind is not None:
             raise StageInputError(f"{self.run_dir}: the folder of {kind} {self.run_id!r}, not "
                                   "a run's; give the run another --run-id")
+        fresh = not self.run_dir.exists()
         self.run_dir.mkdir(parents=True, exist_ok=True)
         for own in (self.run_dir / ".lock", self.stages_dir):
             if own.is_symlink():  # ours are never links: one would write or sweep elsewhere
@@ -279,6 +281,11 @@ class RunStore:
             yield
         finally:
             os.close(fd)
+            if fresh and [p.name for p in self.run_dir.iterdir()] == [".lock"]:
+                # a command that failed before its first commit leaves no empty run behind
+                (self.run_dir / ".lock").unlink(missing_ok=True)
+                with contextlib.suppress(OSError):
+                    self.run_dir.rmdir()
 
     def _sweep_garbage(self) -> None:
         """Under the lock: remove stage folders no symlink points at, and dead temporaries."""

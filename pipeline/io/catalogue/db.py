@@ -103,6 +103,9 @@ def recorded_catalogue_db(catalogue_json: Path) -> Path:
     tables would join against other craters)."""
     facts = recorded_facts(catalogue_json)
     db = Path(facts["db_path"])
+    if not db.exists():
+        raise CatalogueError(f"{db}: the catalogue this run used is gone (deleted); rerun the "
+                             "run to rebuild it")
     meta = read_meta(db)
     if meta is None or meta.get("key") != facts["key"]:
         raise CatalogueError(f"{db}: no longer holds the catalogue this run used (rebuilt by "

@@ -32,11 +32,20 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
+def _not_a_file(path: Path) -> str:
+    """Why `path` cannot be read as a file: missing, or what it is instead."""
+    if path.is_dir():
+        return "a folder, not a catalogue file"
+    if path.exists():
+        return "not a regular file (a FIFO, a device, ...): give a catalogue file"
+    return "catalogue file not found"
+
+
 def read_source(path: Path) -> bytes:
     """The bytes of a catalogue file (the one read of the ingest)."""
     path = Path(path)
     if not path.is_file():
-        raise CatalogueError(f"{path}: catalogue file not found (catalogue.source)")
+        raise CatalogueError(f"{path}: {_not_a_file(path)} (catalogue.source)")
     try:
         return path.read_bytes()
     except OSError as exc:
@@ -47,7 +56,7 @@ def source_sha256(path: Path) -> str:
     """Hex sha256 of the file's bytes, as `build_catalogue` records it (cached by size, mtime)."""
     path = Path(path)
     if not path.is_file():
-        raise CatalogueError(f"{path}: catalogue file not found (catalogue.source)")
+        raise CatalogueError(f"{path}: {_not_a_file(path)} (catalogue.source)")
     return sha256_file(path)
 
 
@@ -235,7 +244,7 @@ def read_header(path: Path) -> tuple[list[str], str, str]:
     and its first data row as text (for messages)."""
     path = Path(path)
     if not path.is_file():
-        raise CatalogueError(f"{path}: catalogue file not found (catalogue.source)")
+        raise CatalogueError(f"{path}: {_not_a_file(path)} (catalogue.source)")
     with open(path, "rb") as f:
         head = f.read(1 << 16)
     if _kind(head) == "parquet":
