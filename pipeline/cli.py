@@ -12,7 +12,7 @@ from typing import Annotated, Any
 import typer
 
 from pipeline.config import load_config
-from pipeline.errors import PipelineError
+from pipeline.errors import ConfigError, PipelineError
 from pipeline.io.store import RunStore
 
 app = typer.Typer(help="Crater-based absolute navigation for lunar landers: a batch pipeline "
@@ -66,7 +66,18 @@ def ingest(
     given = {"source": source, "format": format, "db_path": db,
              "max_reject_share": max_reject_share}
     overrides = {"catalogue": {k: v for k, v in given.items() if v is not None}}
-    _stage("ingest", scenario, run_id, force, overrides)
+    flags = {"source": "--source", "format": "--format", "db_path": "--db",
+             "max_reject_share": "--max-reject-share"}
+    try:
+        _stage("ingest", scenario, run_id, force, overrides)
+    except ConfigError as exc:  # a value given on the command line: name its flag
+        text = str(exc)
+        for key in overrides["catalogue"]:
+            if f"catalogue.{key}" in text:
+                after = text.split(f"catalogue.{key}", 1)[1]
+                reason = after.split(": ", 1)[1] if ": " in after else after
+                raise ConfigError(f"{flags[key]} {given[key]}: {reason}") from None
+        raise
 
 
 @app.command()

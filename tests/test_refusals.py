@@ -86,6 +86,16 @@ def test_a_source_that_is_no_file_says_what_it_is_and_leaves_no_run(workdir, mon
     assert not (workdir / "runs" / source.stem).exists()  # no empty run folder left
 
 
+@pytest.mark.parametrize(("args", "said"), [
+    (["--db", "../elsewhere.duckdb"], "--db ../elsewhere.duckdb: a relative path"),
+    (["--max-reject-share", "2"], "--max-reject-share 2.0: must be a finite number in [0, 1]")])
+def test_an_ingest_flag_out_of_range_is_named_as_the_flag(workdir, monkeypatch, capsys, args,
+                                                          said):
+    code, _, err = main(monkeypatch, capsys, "ingest", *args)
+    message = assert_clear_error(code, err, said)
+    assert "default.toml" not in message  # the value came from the command line, not the file
+
+
 def test_a_non_utf8_spec_is_one_line_naming_it(workdir, monkeypatch, capsys):
     path = workdir / "runs" / "campaigns" / "bytes.toml"
     path.parent.mkdir(parents=True)
