@@ -292,6 +292,10 @@ def compare(
     series, windows, biases = [], [], []
     for run in runs:
         store = RunStore(validate_run_id(run))
+        kind = foreign_folder(store.run_dir)
+        if kind is not None:
+            raise PipelineError(f"compare: {store.run_dir}: the folder of {kind} {run!r}, not a "
+                                f"run; compare takes runs (its report: {store.run_dir}/report.md)")
         need = ("frames.parquet", "scores.parquet", "navigation.parquet", "summary.parquet",
                 "navigation_summary.parquet", "detections.parquet", "trajectory.parquet")
         try:
@@ -472,6 +476,12 @@ def main() -> None:
             raise
         typer.secho("error: interrupted; nothing partial was committed", fg="red", err=True)
         raise SystemExit(130) from None
+    except UnicodeEncodeError as exc:  # a file name (or text) with bytes that are not UTF-8
+        shown = (exc.object.encode("utf-8", "backslashreplace").decode()
+                 if isinstance(exc.object, str) else repr(exc.object))
+        typer.secho(f"error: {shown[:300]}: not UTF-8 (the tables hold names as UTF-8); rename "
+                    "it", fg="red", err=True)
+        raise SystemExit(1) from None
     except OSError as exc:
         where = f"{exc.filename}: " if exc.filename else ""
         typer.secho(f"error: {where}{exc.strerror or exc}", fg="red", err=True)

@@ -96,6 +96,15 @@ def test_an_ingest_flag_out_of_range_is_named_as_the_flag(workdir, monkeypatch, 
     assert "default.toml" not in message  # the value came from the command line, not the file
 
 
+def test_a_file_name_that_is_not_utf8_is_one_line(workdir, monkeypatch, capsys):
+    name = os.fsdecode(b"g\xffx.csv")  # a surrogate: the bytes of a Latin-1 file name
+    source = workdir / name
+    source.write_text("lat,lon,diam\n1.0,2.0,3.0\n")
+    code, _, err = main(monkeypatch, capsys, "ingest", "--source", str(source))
+    err = err.split("ingest: running (run g_x)\n")[-1]  # the stage's start, then the one line
+    assert_clear_error(code, err, "g\\udcffx.csv", "not UTF-8")
+
+
 def test_a_non_utf8_spec_is_one_line_naming_it(workdir, monkeypatch, capsys):
     path = workdir / "runs" / "campaigns" / "bytes.toml"
     path.parent.mkdir(parents=True)
