@@ -39,7 +39,7 @@ from pipeline.io.sql_guard import (
     translate_error,
 )
 from pipeline.io.sql_print import FORMATS, Result, render
-from pipeline.io.store import detections_view
+from pipeline.io.views import detections_view
 from pipeline.workspace import Workspace, workspace
 
 DEFAULT_DB = "catalogue/craters.duckdb"

@@ -47,8 +47,9 @@ PHYSICAL = Group("detection.sensor = physical", dict.fromkeys(
 # Crater positions are stored where they are constant, in MCMF (Parquet stores a crater's
 # repeats over the frames that see it for ~1 byte a row): the matched crater as the navigator's
 # catalogue has it (`c_matched_mcmf`; in MCI at the frame, what the estimators take:
-# `ops.detect.matched_positions_mci`) and the truth's point (`c_true_mcmf`), from which the true
-# bearing and range follow with the trajectory's true pose (`ops.detect.true_lines_of_sight`).
+# `ops.detection_columns.matched_positions_mci`) and the truth's point (`c_true_mcmf`), from
+# which the true bearing and range follow with the trajectory's true pose
+# (`ops.detection_columns.true_lines_of_sight`).
 # The run database's `detections` view adds c_mci_*, u_true_body_* and rho_true_m. Stored, those
 # were 19.6 MB of the default run's 39.
 DETECTIONS = TableSchema("detections", {
