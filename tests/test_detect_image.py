@@ -112,6 +112,14 @@ def test_inputs_that_would_be_named_alike_or_scored_wrongly_are_refused(
     assert not (tmp_path / "o").exists()
 
 
+def test_a_file_of_several_images_is_refused(tmp_path: Path, monkeypatch, capsys) -> None:
+    pages = tmp_path / "pages.tif"
+    first = Image.fromarray(np.full((64, 64), 90, np.uint8))
+    first.save(pages, save_all=True, append_images=[Image.fromarray(np.zeros((64, 64), np.uint8))])
+    code, out, err = _run(monkeypatch, capsys, str(pages), "--out", str(tmp_path / "o"))
+    assert code == 1 and "2 images in one file" in err and "Traceback" not in out + err
+
+
 def test_out_is_never_a_runs_or_the_catalogues_folder(workdir, monkeypatch, capsys) -> None:
     img = _crater_image(workdir / "img.png")
     run = workdir / "runs" / "r"

@@ -62,6 +62,10 @@ def read_image(path: Path) -> np.ndarray:
                     raise ImageInputError(f"{path}: the image has no pixels ({w} x {h})")
                 if w * h > MAX_PIXELS:
                     raise ImageInputError(f"{path}: {w} x {h} px is over {MAX_PIXELS:,} px")
+                frames = getattr(im, "n_frames", 1)
+                if frames > 1:  # a multi-page TIFF, an animated GIF or PNG
+                    raise ImageInputError(f"{path}: {frames} images in one file; give one image "
+                                          "per file")
                 arr = _grey(im)
     except ImageInputError:
         raise
