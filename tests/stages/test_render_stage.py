@@ -108,8 +108,8 @@ def test_images_scenario_runs_end_to_end_from_pixels(tmp_path, catalogue_db: Pat
     rows = np.searchsorted(cat.crater_id, ident["matched_id"].to_numpy(),
                            sorter=np.argsort(cat.crater_id))
     expected = np.linalg.norm(crest_m[np.argsort(cat.crater_id)[rows]], axis=1)
-    np.testing.assert_allclose(np.linalg.norm(xyz(ident, "c_mci", "_m"), axis=1), expected,
-                               rtol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(xyz(ident, "c_matched_mcmf", "_m"), axis=1),
+                               expected, rtol=1e-12)
     assert np.all(expected > MOON_RADIUS_M + 50.0)  # 5 km craters: rims >= 180 m up
     nav = table(store, "navigation")
     assert np.isfinite(nav["err_pos_x_m"].to_numpy()).all()
