@@ -282,11 +282,11 @@ class RunStore:
             yield
         finally:
             os.close(fd)
-            if fresh and [p.name for p in self.run_dir.iterdir()] == [".lock"]:
-                # a command that failed before its first commit leaves no empty run behind
-                (self.run_dir / ".lock").unlink(missing_ok=True)
+            if fresh:  # a command that failed before its first commit leaves no empty run
                 with contextlib.suppress(OSError):
-                    self.run_dir.rmdir()
+                    if [p.name for p in self.run_dir.iterdir()] == [".lock"]:
+                        (self.run_dir / ".lock").unlink()
+                        self.run_dir.rmdir()
 
     def _sweep_garbage(self) -> None:
         """Under the lock: remove stage folders no symlink points at, and dead temporaries."""
