@@ -12,7 +12,7 @@ from typing import Annotated, Any
 import typer
 
 from pipeline.config import load_config
-from pipeline.errors import ConfigError, PipelineError
+from pipeline.errors import PipelineError
 from pipeline.io.store import RunStore
 
 app = typer.Typer(help="Crater-based absolute navigation for lunar landers: a batch pipeline "
@@ -34,8 +34,8 @@ def _executor() -> Any:
 
 
 def _stage(name: str, scenario: str, run_id: str | None, force: bool,
-           overrides: dict[str, Any] | None = None) -> None:
-    cfg = load_config(scenario, run_id, overrides)
+           overrides: dict[str, Any] | None = None, flags: dict[str, str] | None = None) -> None:
+    cfg = load_config(scenario, run_id, overrides, flags)
     ex = _executor()
     ex.execute(ex.plan(cfg, [name], force=[name] if force else []), RunStore(cfg.run_id))
 
@@ -66,18 +66,9 @@ def ingest(
     given = {"source": source, "format": format, "db_path": db,
              "max_reject_share": max_reject_share}
     overrides = {"catalogue": {k: v for k, v in given.items() if v is not None}}
-    flags = {"source": "--source", "format": "--format", "db_path": "--db",
-             "max_reject_share": "--max-reject-share"}
-    try:
-        _stage("ingest", scenario, run_id, force, overrides)
-    except ConfigError as exc:  # a value given on the command line: name its flag
-        text = str(exc)
-        for key in overrides["catalogue"]:
-            if f"catalogue.{key}" in text:
-                after = text.split(f"catalogue.{key}", 1)[1]
-                reason = after.split(": ", 1)[1] if ": " in after else after
-                raise ConfigError(f"{flags[key]} {given[key]}: {reason}") from None
-        raise
+    flags = {"catalogue.source": "--source", "catalogue.format": "--format",
+             "catalogue.db_path": "--db", "catalogue.max_reject_share": "--max-reject-share"}
+    _stage("ingest", scenario, run_id, force, overrides, flags)
 
 
 @app.command()
@@ -283,7 +274,7 @@ def compare(
     from pipeline.config import validate_run_id
     from pipeline.core.sensors import camera
     from pipeline.io.files import atomic_write_text
-    from pipeline.io.store import COMPARE_MARKER, MANIFEST_FILE, foreign_folder
+    from pipeline.io.store import COMPARE_MARKER, foreign_folder, is_run_folder
     from pipeline.io.tables import read_table
     from pipeline.ops import compare as cmp
     from pipeline.viz.report import compare_report
@@ -326,7 +317,7 @@ def compare(
     except PipelineError as exc:
         raise PipelineError(f"compare: {exc}; name the comparison with --name") from None
     kind = foreign_folder(folder)
-    if (folder / MANIFEST_FILE).is_file() or (kind is not None and kind != "comparison"):
+    if is_run_folder(folder) or (kind is not None and kind != "comparison"):
         raise PipelineError(f"compare: {folder}: the folder of {kind or 'a run'}, not a "
                             "comparison's; give the comparison another --name")
     folder.mkdir(parents=True, exist_ok=True)
@@ -403,7 +394,7 @@ def detect_image(
     """Craters in any image: rim ellipses with a confidence (detections.parquet: image,
     centre_u_px, centre_v_px, semi_major_px, semi_minor_px, angle_rad, confidence; pixel (0, 0)
     the corner of the first pixel, u right, v down) and an overlay PNG per image."""
-    from pipeline.io.store import foreign_folder
+    from pipeline.io.store import foreign_folder, is_run_folder
     from pipeline.ops import detect_image as di
     from pipeline.ops.detectors import make_detector
     from pipeline.workspace import workspace
@@ -413,7 +404,8 @@ def detect_image(
     ws = workspace()
     target = out.resolve()
     for folder in (target, *target.parents):  # never into a run's, campaign's or catalogue's
-        kind = foreign_folder(folder) or ("a run" if (folder / ".stages").exists() else None)
+        other = foreign_folder(folder)
+        kind = "a run" if is_run_folder(folder) else f"a {other}" if other else None
         if kind is not None or folder == ws.resolve(Path("catalogue")).resolve():
             raise PipelineError(f"--out {out}: inside {folder}, the folder of "
                                 f"{kind or 'the catalogues'}; give another folder")

@@ -87,8 +87,8 @@ def test_a_source_that_is_no_file_says_what_it_is_and_leaves_no_run(workdir, mon
 
 
 @pytest.mark.parametrize(("args", "said"), [
-    (["--db", "../elsewhere.duckdb"], "--db ../elsewhere.duckdb: a relative path"),
-    (["--max-reject-share", "2"], "--max-reject-share 2.0: must be a finite number in [0, 1]")])
+    (["--db", "../elsewhere.duckdb"], "--db '../elsewhere.duckdb': a relative path"),
+    (["--max-reject-share", "2"], "--max-reject-share 2: must be a finite number in [0, 1]")])
 def test_an_ingest_flag_out_of_range_is_named_as_the_flag(workdir, monkeypatch, capsys, args,
                                                           said):
     code, _, err = main(monkeypatch, capsys, "ingest", *args)

@@ -156,12 +156,14 @@ def _read_scenario(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
 
 
 def load_config(scenario: str = "default", run_id: str | None = None,
-                overrides: dict[str, Any] | None = None) -> RunConfig:
+                overrides: dict[str, Any] | None = None,
+                flags: dict[str, str] | None = None) -> RunConfig:
     """Load a scenario (a name of the workspace's runs/scenarios/ or a .toml path) into a RunConfig.
 
-    `overrides` is a nested dict merged over the file (how the CLI's options apply). `run_id`
-    (default: the scenario's name) is checked by `validate_run_id`. Every error is a one-line
-    ConfigError naming the file and the key.
+    `overrides` is a nested dict merged over the file (how the CLI's options apply); `flags`
+    names the option each overridden dotted key came from ({"catalogue.db_path": "--db"}).
+    `run_id` (default: the scenario's name) is checked by `validate_run_id`. Every error is a
+    one-line ConfigError naming the file and the key, or the option for a value it gave.
     """
     if run_id is not None:
         validate_run_id(run_id)
@@ -182,6 +184,10 @@ def load_config(scenario: str = "default", run_id: str | None = None,
     try:
         return _build(RunConfig, data, "")
     except ConfigError as exc:
+        text = str(exc)  # "<key> = <value>: <why>"
+        for key, flag in (flags or {}).items():
+            if text.startswith(f"{key} = "):
+                raise ConfigError(f"{flag} {text[len(key) + 3:]}") from None
         raise ConfigError(f"{path}: {exc}") from None
 
 

@@ -72,6 +72,11 @@ def foreign_folder(folder: Path) -> str | None:
     return next((kind for n, kind in FOLDER_MARKERS.items() if (folder / n).is_file()), None)
 
 
+def is_run_folder(folder: Path) -> bool:
+    """Whether `folder` holds a run (its manifest or its stages' folder)."""
+    return (folder / MANIFEST_FILE).is_file() or (folder / STAGES_DIR).exists()
+
+
 class RunStore:
     """One run folder: committed stage outputs, their entries, the lock and the derived views."""
 
