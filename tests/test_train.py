@@ -12,6 +12,7 @@ import pytest
 pytest.importorskip("torch")
 ort = pytest.importorskip("onnxruntime")
 
+from pipeline.ops.detectors import MODEL_FORMAT, make_detector  # noqa: E402
 from pipeline.train.__main__ import main  # noqa: E402
 
 
@@ -32,6 +33,11 @@ def test_tiny_training_is_reproducible(tmp_path: Path) -> None:
     np.testing.assert_array_equal(ya, yb)
     assert not np.allclose(ya, yc)
     facts = json.loads(a.with_suffix(".json").read_text())
+    assert facts["format"] == MODEL_FORMAT and isinstance(facts["bf16"], bool)
     assert facts["options"]["seed"] != 5 and facts["outputs"][0] == "heat_logit"
     assert facts["stride"] == 4 and facts["train_s"] > 0 and facts["commit"]
     assert [e["phase"] for e in facts["log"]][:1] == ["render"]
+    # the detector runs it (the sha256 its training recorded checked on loading)
+    img = np.random.default_rng(1).integers(0, 255, (64, 96)).astype(np.uint8)
+    det = make_detector("learned", model=a, threads=1).detect(img, np.array([0.0, 1.0]))
+    assert det.centre_px.shape[1] == 2

@@ -27,6 +27,7 @@ DEFAULT_MODEL = MODELS / "crater_detector.onnx"
 # the trained models key the stages that detect with them (`pipeline.engine.fingerprint`): a
 # retrained or replaced model reruns them
 KEYED_DATA = ("../models",)
+MODEL_FORMAT = "crater-nav learned detector 2"  # the training's record (`pipeline.train.fit`)
 
 
 @dataclass(frozen=True)
@@ -52,7 +53,12 @@ def _session(path: str, threads: int) -> object:
     """An ONNX Runtime session (cached per file and thread count)."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"no detector model at {path} (train one: just train-detector)")
-    recorded = model_facts(Path(path)).get("sha256")
+    facts = model_facts(Path(path))
+    if facts.get("format") not in (None, MODEL_FORMAT):
+        raise ValueError(f"{path}: a model of another format ({facts.get('format')!r}, this "
+                         f"detector runs {MODEL_FORMAT!r}: its input convention differs); "
+                         "retrain it (just train-detector)")
+    recorded = facts.get("sha256")
     if recorded is not None and hashlib.sha256(Path(path).read_bytes()).hexdigest() != recorded:
         raise ValueError(f"{path}: not the model its training recorded (sha256 differs from "
                          f"{Path(path).with_suffix('.json').name}); retrain or restore it")

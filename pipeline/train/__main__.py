@@ -3,8 +3,9 @@
 Default: phase 1 on rendered scenes, phase 2 with every real labelled image of
 `../shared/data/lro_nac_craters` (when present), written to `pipeline/models/crater_detector.onnx`
 (+ .json); plus the fold that leaves out the first real image (`crater_detector_loo_<name>.onnx`,
-for the left-out-image test). `--loo DIR`: every leave-one-image-out fold into DIR (for the
-benchmark). `--tiny`: a few steps on a few small scenes (CI's smoke run) into `--out`.
+for the left-out-image test), fine-tuned from the same phase 1. `--loo DIR`: every
+leave-one-image-out fold into DIR (for the benchmark; one phase 1, a fine-tuning per image).
+`--tiny`: a few steps on a few small scenes (CI's smoke run) into `--out`.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     folder = args.real or workspace().root.parent / "shared" / "data" / "lro_nac_craters"
     real = [] if args.no_real or not folder.is_dir() else data.real_images(folder)
     if args.tiny:
-        real = [data.random_crop(r, 256, np.random.default_rng(0)) for r in real[:2]]
+        real = [data.canonical_crop(r, 256, np.random.default_rng(0)) for r in real[:2]]
     if not real and not args.no_real:
         print(f"no labelled real images in {folder}: training on rendered scenes only")
     t0 = time.perf_counter()

@@ -1,13 +1,28 @@
 """Training samples for the learned detector: rendered scenes and real labelled images, as crops
-with CenterNet targets at stride 4.
+turned to the canonical Sun, with CenterNet targets at stride 4.
 
-Targets (Zhou et al. 2019, "Objects as points"): for a crater of centre (u, v) px and radius r px
-(sqrt(a b) of the rim ellipse), the cell of its centre, (i, j) = round(v / 4 - 0.5, u / 4 - 0.5),
-peaks at 1 in a Gaussian heatmap (sigma = max(0.6, 0.2 r / 4) cells; overlapping craters keep the
-maximum), and carries the regression targets log r and the offset (u / 4 - 0.5 - j,
-v / 4 - 0.5 - i) cells. Craters too small or too degraded to be labelled reliably (rendered:
-D < 6 px or normalised age > `MAX_POSITIVE_AGE`; real: D < 8 px, where the human labels are
-incomplete) are *ignored*: no positive, and the heatmap loss is not applied within their radius.
+Canonical Sun: every crop is turned by quarter turns so that the Sun's image direction lies
+within 45 deg of +u (`learned.canonical_turns`, the turn the detector makes at inference) and
+mirrored across the u axis at random (which keeps it there). The network then learns one
+lighting, not four. Rendered scenes know their Sun; a real image's is read from the shading
+inside its labelled rims (`sun_direction.sun_from_rims`: labels are known in training).
+
+Targets (Zhou et al. 2019, "Objects as points"; the regression over an area as in TTFNet, Liu et
+al. 2020, "Training-time-friendly network for real-time object detection", AAAI): for a crater
+of centre (u, v) px and radius r px (sqrt(a b) of the rim ellipse), the cell of its centre,
+(i, j) = round(v / 4 - 0.5, u / 4 - 0.5), peaks at 1 in a Gaussian heatmap (sigma = max(0.6,
+0.2 r / 4) cells; overlapping craters keep the maximum). Every cell where that Gaussian is >=
+`AREA_SHARE` carries the regression targets log r and the offset from the cell to the centre
+(u / 4 - 0.5 - j', v / 4 - 0.5 - i') cells, weighted by the Gaussian (a smaller crater's
+overrides a larger one's). Craters too small or too degraded to be labelled reliably
+(rendered: D < 6 px or normalised age > `MAX_POSITIVE_AGE`; real: D < 8 px, where the human
+labels are incomplete) are *ignored*: no positive, and the heatmap loss is not applied within
+their radius.
+
+Scale: rendered crops are taken at their native scale; real crops may be shrunk by a factor in
+`scale` (<= 1: a coarser camera; Gaussian anti-aliasing first), never enlarged: an enlarged
+image's blur and noise grain tell the network its scale and bias its radii (measured: zoom 0.6-
+1.5 made the radii 10 % short on images at their own scale).
 
 Real images: `lro_nac_craters`-style folders (8-bit PNG + CSV `ID,X,Y,W,H,C_X,CY`, a circle of
 centre (C_X, CY) and diameter (W + H) / 2 px; pixel (0, 0) the corner of the first pixel).
@@ -15,32 +30,38 @@ centre (C_X, CY) and diameter (W + H) / 2 px; pixel (0, 0) the corner of the fir
 
 from __future__ import annotations
 
-import csv
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 from PIL import Image
 from scipy import ndimage
 
 from pipeline.core.sensors.scenes import SceneOptions, render_scene, scene_rng
-from pipeline.core.vision.detectors.learned import STRIDE, normalise
+from pipeline.core.vision.detectors.learned import STRIDE, canonical_turns, normalise
+from pipeline.core.vision.sun_direction import sun_from_rims
+from pipeline.ops.detect_image import read_labels
 
 MIN_RENDERED_DIAM_PX = 6.0
 MIN_REAL_DIAM_PX = 8.0
 MAX_POSITIVE_AGE = 0.08
+AREA_SHARE = 0.3  # the regression's area: where the crater's heatmap Gaussian is >= this
+SIGMA_SHARE = 0.2  # heatmap sigma as a share of the radius (cells), at least 0.6 cells
 
 
 @dataclass(frozen=True)
 class Labelled:
-    """An image (H, W) uint8 with crater circles: centres (n, 2) px, radii (n,) px, and a mask
-    (n,) of the craters used as positives (the others are ignored)."""
+    """An image (H, W) uint8 or float32 with crater circles: centres (n, 2) px, radii (n,) px, a
+    mask (n,) of the craters used as positives (the others are ignored), and the Sun's unit
+    image direction (2,) (du, dv)."""
 
     image: np.ndarray
     centre_px: np.ndarray
     radius_px: np.ndarray
     positive: np.ndarray
+    sun_dir_image: np.ndarray
     name: str = ""
 
 
@@ -49,7 +70,7 @@ def _scene_sample(args: tuple[int, int, SceneOptions]) -> Labelled:
     sc = render_scene(scene_rng(seed, index), opts)
     r = np.sqrt(sc.semi_major_px * sc.semi_minor_px)
     pos = (2 * r >= MIN_RENDERED_DIAM_PX) & (sc.degradation <= MAX_POSITIVE_AGE)
-    return Labelled(sc.image, sc.centre_px, r, pos, f"scene-{seed}-{index}")
+    return Labelled(sc.image, sc.centre_px, r, pos, sc.sun_dir_image, f"scene-{seed}-{index}")
 
 
 def rendered_set(seed: int, n: int, opts: SceneOptions | None = None, workers: int = 2
@@ -64,62 +85,57 @@ def rendered_set(seed: int, n: int, opts: SceneOptions | None = None, workers: i
         return list(pool.map(_scene_sample, jobs, chunksize=8))
 
 
-def read_labels(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Centres (n, 2) px and diameters (n,) px of a crater label CSV (module docstring)."""
-    with path.open(newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    cu = np.array([float(r["C_X"]) for r in rows])
-    cv = np.array([float(r["CY"]) for r in rows])
-    d = np.array([0.5 * (float(r["W"]) + float(r["H"])) for r in rows])
-    return np.stack([cu, cv], -1).reshape(-1, 2), d
-
-
 def real_images(folder: Path) -> list[Labelled]:
-    """The labelled real images of a folder (PNG + CSV of the same stem), sorted by name."""
+    """The labelled real images of a folder (PNG + label file of the same stem), sorted by name;
+    each one's Sun read from the shading inside its labelled rims of 10 px and more."""
     out = []
     for png in sorted(folder.glob("*.png")):
         lab = png.with_suffix(".txt")
         if not lab.is_file():
             continue
         img = np.asarray(Image.open(png).convert("L"))
-        c, d = read_labels(lab)
+        c, d = read_labels(lab, img.shape)
         inside = (c[:, 0] >= 0) & (c[:, 0] < img.shape[1]) & (c[:, 1] >= 0) \
             & (c[:, 1] < img.shape[0])
-        out.append(Labelled(img, c[inside], d[inside] / 2, d[inside] >= MIN_REAL_DIAM_PX,
-                            png.stem))
+        c, r = c[inside], d[inside] / 2
+        big = 2 * r >= 10
+        sun = sun_from_rims(img, c[big], r[big]).direction
+        out.append(Labelled(img, c, r, 2 * r >= MIN_REAL_DIAM_PX, sun, png.stem))
     return out
 
 
 # --- crops and augmentation -----------------------------------------------------------------------
 
 
-def random_crop(sample: Labelled, size: int, rng: np.random.Generator,
-                scale: tuple[float, float] = (1.0, 1.0)) -> Labelled:
-    """A size x size crop at a random place, zoomed by a factor drawn log-uniformly in `scale`,
-    turned by a random multiple of 90 deg and mirrored at random (a crater stays a crater)."""
+def canonical_crop(sample: Labelled, size: int, rng: np.random.Generator,
+                   scale: tuple[float, float] = (1.0, 1.0)) -> Labelled:
+    """A size x size crop at a random place, shrunk by a factor drawn log-uniformly in `scale`
+    (<= 1, anti-aliased), turned so the Sun lies within 45 deg of +u and mirrored across the u
+    axis at random (module docstring)."""
     z = float(np.exp(rng.uniform(np.log(scale[0]), np.log(scale[1]))))
-    src = int(np.ceil(size / z))
-    h, w = sample.image.shape
+    src = int(np.ceil(size / min(z, 1.0)))
     img = sample.image
+    h, w = img.shape
     if src > min(h, w):
-        pad = src - min(h, w)
-        img = np.pad(img, ((0, max(pad, 0)), (0, max(pad, 0))), mode="reflect")
+        img = np.pad(img, ((0, max(src - h, 0)), (0, max(src - w, 0))), mode="reflect")
         h, w = img.shape
     y0, x0 = int(rng.integers(0, h - src + 1)), int(rng.integers(0, w - src + 1))
     crop = img[y0:y0 + src, x0:x0 + src].astype(np.float32)
-    if z != 1.0:
-        crop = ndimage.zoom(crop, size / src, order=1, grid_mode=True, mode="nearest")
-    crop = crop[:size, :size]
-    c = (sample.centre_px - [x0, y0]) * (size / src)
-    r = sample.radius_px * (size / src)
-    k = int(rng.integers(4))
-    for _ in range(k):  # rot90 counterclockwise: (u, v) -> (v, size - u)
+    f = size / src
+    if src != size:
+        crop = ndimage.gaussian_filter(crop, 0.5 * np.sqrt(1 / f ** 2 - 1), mode="nearest")
+        crop = ndimage.zoom(crop, f, order=1, grid_mode=True, mode="nearest")[:size, :size]
+    c = (sample.centre_px - [x0, y0]) * f
+    r = sample.radius_px * f
+    for _ in range(canonical_turns(sample.sun_dir_image)):  # rot90: (u, v) -> (v, size - u)
         crop = np.rot90(crop)
         c = np.stack([c[:, 1], size - c[:, 0]], -1)
     if rng.uniform() < 0.5:
-        crop = crop[:, ::-1]
-        c = np.stack([size - c[:, 0], c[:, 1]], -1)
-    return Labelled(np.ascontiguousarray(crop), c, r, sample.positive, sample.name)
+        crop = crop[::-1, :]
+        c = np.stack([c[:, 0], size - c[:, 1]], -1)
+    positive = sample.positive & ((2 * r >= MIN_REAL_DIAM_PX) | (src == size))
+    return Labelled(np.ascontiguousarray(crop), c.reshape(-1, 2), r, positive,
+                    np.array([1.0, 0.0]), sample.name)
 
 
 def photometric(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -129,46 +145,63 @@ def photometric(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return (255.0 * x).astype(np.float32)
 
 
-def targets(sample: Labelled, size: int) -> tuple[np.ndarray, ...]:
-    """CenterNet targets of a crop (module docstring): heat (h, h), negative-loss weight (h, h),
-    regression mask (h, h), log radius (h, h), offsets (2, h, h), with h = size / 4."""
-    h = size // STRIDE
+@numba.njit(cache=True)
+def _targets(cu: np.ndarray, cv: np.ndarray, r_px: np.ndarray, positive: np.ndarray, h: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The targets of `targets` from the centres in cells (cu, cv), radii (px) and positives."""
     heat = np.zeros((h, h), np.float32)
     weight = np.ones((h, h), np.float32)
-    mask = np.zeros((h, h), np.float32)
+    reg = np.zeros((h, h), np.float32)
     log_r = np.zeros((h, h), np.float32)
     off = np.zeros((2, h, h), np.float32)
-    cu = sample.centre_px[:, 0] / STRIDE - 0.5
-    cv = sample.centre_px[:, 1] / STRIDE - 0.5
-    rc = sample.radius_px / STRIDE
-    inside = (cu > -0.5) & (cu < h - 0.5) & (cv > -0.5) & (cv < h - 0.5)
-    yy, xx = np.mgrid[0:h, 0:h]
-    for k in np.flatnonzero(inside & ~sample.positive):
-        reach = max(1.0, float(rc[k]))
-        near = (xx - cu[k]) ** 2 + (yy - cv[k]) ** 2 <= reach ** 2
-        weight[near] = 0.0
-    for k in np.flatnonzero(inside & sample.positive)[np.argsort(-rc[inside & sample.positive])]:
-        sigma = max(0.6, 0.2 * float(rc[k]))
-        j, i = int(np.rint(cu[k])), int(np.rint(cv[k]))
+    rc = r_px / STRIDE
+    for k in range(len(cu)):  # ignored craters: no negative loss within their radius
+        if positive[k] or not (-0.5 < cu[k] < h - 0.5 and -0.5 < cv[k] < h - 0.5):
+            continue
+        reach = max(1.0, rc[k])
+        for i in range(max(0, int(np.floor(cv[k] - reach))),
+                       min(h, int(np.ceil(cv[k] + reach)) + 1)):
+            for j in range(max(0, int(np.floor(cu[k] - reach))),
+                           min(h, int(np.ceil(cu[k] + reach)) + 1)):
+                if (j - cu[k]) ** 2 + (i - cv[k]) ** 2 <= reach * reach:
+                    weight[i, j] = 0.0
+    for k in np.argsort(-rc):  # larger first: a smaller crater's regression overrides
+        if not positive[k] or not (-0.5 < cu[k] < h - 0.5 and -0.5 < cv[k] < h - 0.5):
+            continue
+        sigma = max(0.6, SIGMA_SHARE * rc[k])
+        ci, cj = int(np.rint(cv[k])), int(np.rint(cu[k]))
         w = int(np.ceil(3 * sigma))
-        i0, i1, j0, j1 = max(i - w, 0), min(i + w + 1, h), max(j - w, 0), min(j + w + 1, h)
-        g = np.exp(-((xx[i0:i1, j0:j1] - j) ** 2 + (yy[i0:i1, j0:j1] - i) ** 2)
-                   / (2 * sigma * sigma))
-        heat[i0:i1, j0:j1] = np.maximum(heat[i0:i1, j0:j1], g)
-        heat[i, j] = 1.0
-        weight[i0:i1, j0:j1] = np.maximum(weight[i0:i1, j0:j1], g > 0.01)
-        mask[i, j] = 1.0
-        log_r[i, j] = np.log(sample.radius_px[k])
-        off[:, i, j] = cu[k] - j, cv[k] - i
-    return heat, weight, mask, log_r, off
+        for i in range(max(ci - w, 0), min(ci + w + 1, h)):
+            for j in range(max(cj - w, 0), min(cj + w + 1, h)):
+                g = np.exp(-((j - cj) ** 2 + (i - ci) ** 2) / (2 * sigma * sigma))
+                heat[i, j] = max(heat[i, j], g)
+                if g > 0.01:
+                    weight[i, j] = 1.0
+                if g >= AREA_SHARE:
+                    reg[i, j] = g
+                    log_r[i, j] = np.log(r_px[k])
+                    off[0, i, j] = cu[k] - j
+                    off[1, i, j] = cv[k] - i
+        heat[ci, cj] = 1.0
+    return heat, weight, reg, log_r, off
+
+
+def targets(sample: Labelled, size: int) -> tuple[np.ndarray, ...]:
+    """CenterNet targets of a crop (module docstring): heat (h, h), negative-loss weight (h, h),
+    regression weight (h, h), log radius (h, h), offsets (2, h, h), with h = size / 4."""
+    c = np.asarray(sample.centre_px, np.float64).reshape(-1, 2)
+    return _targets(c[:, 0] / STRIDE - 0.5, c[:, 1] / STRIDE - 0.5,
+                    np.asarray(sample.radius_px, np.float64),
+                    np.asarray(sample.positive, np.bool_), size // STRIDE)
 
 
 def batch(samples: list[Labelled], size: int, rng: np.random.Generator,
           scale: tuple[float, float], photometric_share: float) -> tuple[np.ndarray, ...]:
-    """A batch of augmented crops: inputs (B, 1, S, S) normalised, and stacked targets."""
+    """A batch of augmented canonical crops: inputs (B, 1, S, S) normalised, and stacked
+    targets."""
     xs, ts = [], []
     for s in samples:
-        crop = random_crop(s, size, rng, scale)
+        crop = canonical_crop(s, size, rng, scale)
         img = photometric(crop.image, rng) if rng.uniform() < photometric_share else crop.image
         xs.append(normalise(img)[None])
         ts.append(targets(crop, size))

@@ -5,11 +5,22 @@ Two phases (fixed step counts, so the same seed gives the same weights on the sa
 1. synthetic: crops of rendered scenes (`pipeline.core.sensors.scenes`, domain-randomised, with
    degraded craters), `steps_synthetic` steps;
 2. mixed: half the batch crops of the real labelled images (all but the left-out ones), half
-   rendered, `steps_real` steps, from phase 1's weights.
+   rendered, `steps_real` steps, from phase 1's weights (shared by the leave-one-out folds).
 Loss (CenterNet, Zhou et al. 2019): the penalty-reduced focal loss on the heatmap (alpha 2, beta
 4; Lin et al. 2017, "Focal loss for dense object detection") normalised by the positives, plus L1
-on log radius and on the centre offset at the positive cells. AdamW (Loshchilov & Hutter 2019),
-one-cycle learning rate (Smith & Topin 2019).
+on log radius and on the centre offset over each crater's regression area, weighted by its
+heatmap (`data.targets`). AdamW (Loshchilov & Hutter 2019), one-cycle learning rate (Smith &
+Topin 2019).
+
+Batch normalisation's statistics are frozen for the last `bn_frozen_share` of each phase (the
+layers normalise with their running averages, as at inference, while the weights keep learning),
+so the network is trained in the form it is used in.
+
+Speed: on a CPU with bfloat16 instructions (AVX512-BF16 or AMX; `bf16_supported`), the forward
+pass runs under bfloat16 autocast with channels-last tensors (weights, optimiser and loss in
+float32): 3.5x faster per step on the 2-core AMD EPYC this was written on (0.35 -> 0.10 s for a
+batch of 16 crops of 256 px). Elsewhere float32. The mode is recorded in the model's JSON; the
+same seed gives the same weights on the same kind of CPU.
 """
 
 from __future__ import annotations
@@ -27,27 +38,29 @@ import numpy as np
 import torch
 
 from pipeline.core.sensors.scenes import SceneOptions
+from pipeline.ops.detectors import MODEL_FORMAT
 from pipeline.train import data
-from pipeline.train.model import CHANNELS, OUTPUTS, STRIDE, CraterNet
+from pipeline.train.model import BLOCKS, CHANNELS, HEAD_CHANNELS, OUTPUTS, STRIDE, CraterNet
 
 
 @dataclass(frozen=True)
 class TrainOptions:
     """What a training run does; every number of it is recorded in the model's JSON."""
 
-    seed: int = 20261201
-    scenes: int = 1000
+    seed: int = 20261207
+    scenes: int = 3000
     crop_px: int = 256
     batch: int = 16
-    steps_synthetic: int = 1500
-    steps_real: int = 500
+    steps_synthetic: int = 3000
+    steps_real: int = 3000
     lr: float = 3e-3
     weight_decay: float = 1e-4
-    real_scale: tuple[float, float] = (0.6, 1.5)  # zoom of the real crops
+    real_scale: tuple[float, float] = (1.0, 1.0)  # shrink factor of the real crops (<= 1)
     photometric_share: float = 0.5
-    threads: int = 2  # scene rendering processes; the network trains on one thread while a
-    # second process draws the batches (two busy-waiting torch threads slow down on a shared
-    # machine)
+    bn_frozen_share: float = 0.2
+    bf16: bool | None = None  # None: where the CPU has bfloat16 instructions
+    threads: int = 2  # scene rendering processes, and the network's threads (a second process
+    # draws the batches ahead)
     scene: SceneOptions = field(default_factory=SceneOptions)
 
 
@@ -61,12 +74,25 @@ def focal_loss(logit: torch.Tensor, heat: torch.Tensor, weight: torch.Tensor) ->
 
 
 def loss_fn(out: torch.Tensor, tg: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, dict]:
-    heat, weight, mask, log_r, off = tg
+    heat, weight, reg, log_r, off = tg
     lf = focal_loss(out[:, 0], heat, weight)
-    n = mask.sum().clamp(min=1)
-    lr = (torch.abs(out[:, 1] - log_r) * mask).sum() / n
-    lo = (torch.abs(out[:, 2:4] - off) * mask[:, None]).sum() / n
+    n = reg.sum().clamp(min=1e-3)
+    lr = (torch.abs(out[:, 1] - log_r) * reg).sum() / n
+    lo = (torch.abs(out[:, 2:4] - off) * reg[:, None]).sum() / n
     return lf + lr + lo, {"focal": lf.item(), "log_r": lr.item(), "offset": lo.item()}
+
+
+def bf16_supported() -> bool:
+    """Whether this CPU runs bfloat16 natively (AVX512-BF16 or AMX), as PyTorch reports it."""
+    try:
+        return bool(torch.backends.mkldnn.is_available()
+                    and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
+def _use_bf16(opts: TrainOptions) -> bool:
+    return bf16_supported() if opts.bf16 is None else opts.bf16
 
 
 Draw = Callable[[int], tuple[np.ndarray, ...]]
@@ -96,16 +122,25 @@ def prefetched(draw: Draw, steps: int) -> Iterator[tuple[np.ndarray, ...]]:
 def _steps(model: CraterNet, steps: int, draw: Draw, opts: TrainOptions, log: list[dict],
            phase: str) -> None:
     """`steps` optimiser steps on batches from draw(step) -> numpy batch."""
-    torch.set_num_threads(1)
+    torch.set_num_threads(opts.threads)
+    bf16 = _use_bf16(opts)
+    model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     optim = torch.optim.AdamW(model.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(optim, max_lr=opts.lr, total_steps=steps,
-                                                pct_start=0.15)
+                                                pct_start=0.1)
     model.train()
+    freeze_at = round((1.0 - opts.bn_frozen_share) * steps)
     t0 = time.perf_counter()
     acc: dict[str, float] = {}
     for step, arrays in enumerate(prefetched(draw, steps)):
+        if step == freeze_at:
+            for layer in model.modules():
+                if isinstance(layer, torch.nn.BatchNorm2d):
+                    layer.eval()
         x, *tg = (torch.from_numpy(a) for a in arrays)
-        loss, parts = loss_fn(model(x), tuple(tg))
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            out = model(x.contiguous(memory_format=torch.channels_last))
+        loss, parts = loss_fn(out.float(), tuple(tg))
         optim.zero_grad()
         loss.backward()
         optim.step()
@@ -128,7 +163,7 @@ def pretrain(opts: TrainOptions, log: list[dict]) -> tuple[CraterNet, list[data.
     scenes = data.rendered_set(opts.seed, opts.scenes, opts.scene, workers=opts.threads)
     log.append({"phase": "render", "scenes": len(scenes), "s": time.perf_counter() - t0})
     print(f"  rendered {len(scenes)} scenes in {time.perf_counter() - t0:.0f} s", flush=True)
-    model = CraterNet(CHANNELS)
+    model = CraterNet()
     rng = np.random.default_rng([opts.seed, 1])
 
     def draw(step: int) -> tuple[np.ndarray, ...]:
@@ -144,7 +179,7 @@ def finetune(model: CraterNet, scenes: list[data.Labelled], real: list[data.Labe
              opts: TrainOptions, log: list[dict], tag: int = 0) -> CraterNet:
     """Phase 2 on a copy of `model`: half real crops, half rendered (rendered only without real
     images); `tag` separates the random streams of several fine-tunings."""
-    tuned = CraterNet(CHANNELS)
+    tuned = CraterNet()
     tuned.load_state_dict(model.state_dict())
     torch.manual_seed(opts.seed + 7919 * (tag + 1))
     rng = np.random.default_rng([opts.seed, 2, tag])
@@ -166,6 +201,7 @@ def export(model: CraterNet, path: Path, facts: dict) -> None:
     """The model as ONNX (input `image` (1, 1, H, W), output `maps` (1, 4, H/4, W/4), dynamic
     sides) at `path`, and the facts as JSON beside it (same stem)."""
     model.eval()
+    model.to(memory_format=torch.contiguous_format)  # type: ignore[call-overload]
     path.parent.mkdir(parents=True, exist_ok=True)
     x = torch.zeros(1, 1, 256, 256)
     tmp = path.with_suffix(".tmp.onnx")
@@ -194,8 +230,10 @@ def git_commit() -> str:
 def facts_of(opts: TrainOptions, real: list[data.Labelled], left_out: list[str], log: list[dict],
              seconds: float) -> dict:
     """The JSON written beside a model: how it was trained and its output layout."""
-    return {"format": "crater-nav learned detector 1", "stride": STRIDE, "outputs": list(OUTPUTS),
-            "channels": list(CHANNELS), "options": asdict(opts),
+    return {"format": MODEL_FORMAT, "stride": STRIDE, "outputs": list(OUTPUTS),
+            "input": "normalised image turned to the canonical Sun (+u)",
+            "channels": list(CHANNELS), "blocks": list(BLOCKS), "head_channels": HEAD_CHANNELS,
+            "options": asdict(opts), "bf16": _use_bf16(opts),
             "real_images": [r.name for r in real], "left_out": left_out,
             "commit": git_commit(), "torch": torch.__version__, "train_s": round(seconds, 1),
             "log": log}

@@ -1,13 +1,16 @@
 """The learned crater detector's network (PyTorch; only `pipeline.train` imports torch).
 
-A small U-Net-like encoder-decoder (Ronneberger, Fischer & Brox 2015, "U-Net", MICCAI) with
-CenterNet-style heads (Zhou, Wang & Krähenbühl 2019, "Objects as points", arXiv:1904.07850): at
-stride 4 it predicts a crater-centre heatmap logit, the log of the rim radius (px) and the
-sub-cell offset of the centre (du, dv in cells). The encoder goes to stride 32 with dilated
-convolutions (receptive field ~700 px), so rims up to ~400 px across are seen whole; skip
-connections at strides 4-16 keep the small ones. ~0.23 M parameters (~0.9 MB as float32).
-Input: one channel, the image normalised by `pipeline.core.vision.detectors.learned.normalise`;
-height and width multiples of 32.
+An encoder to stride 32 (dilated convolutions at the bottom: a receptive field of ~700 px, so
+rims of several hundred pixels are seen whole) and a feature-pyramid decoder (Lin et al. 2017,
+"Feature pyramid networks for object detection", CVPR: each level's lateral 1 x 1 projection
+added to the upsampled coarser one, then a 3 x 3 convolution) back to stride 4, where
+CenterNet-style heads (Zhou, Wang & Krähenbühl 2019, "Objects as points", arXiv:1904.07850) on
+a 3 x 3 convolution predict a crater-centre heatmap logit, the log of the rim radius (px) and
+the centre's offset from the cell (du, dv in cells). Batch normalisation throughout (folded
+into the convolutions at export). ~1.4 M parameters (~5.5 MB as float32, ~2.8 MB as the
+exported float16 file). Input: one channel, the image normalised by
+`pipeline.core.vision.detectors.learned.normalise`, turned so that the Sun shines from +u
+(`learned.canonical_turns`); height and width multiples of 32.
 """
 
 from __future__ import annotations
@@ -15,7 +18,9 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-CHANNELS = (8, 16, 32, 48, 64)
+CHANNELS = (16, 32, 64, 112, 128)  # strides 2, 4, 8, 16, 32
+BLOCKS = (1, 2, 2, 2)  # extra 3 x 3 convolutions at strides 4, 8, 16, 32
+HEAD_CHANNELS = 64
 STRIDE = 4
 OUTPUTS = ("heat_logit", "log_radius_px", "offset_u", "offset_v")
 
@@ -26,22 +31,30 @@ def _cbr(c_in: int, c_out: int, stride: int = 1, dilation: int = 1) -> nn.Sequen
                          nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
 
 
+def _lateral(c_in: int, c_out: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 1, bias=False), nn.BatchNorm2d(c_out))
+
+
 class CraterNet(nn.Module):
     """Image (B, 1, H, W) -> maps (B, 4, H / 4, W / 4): heat logit, log radius, offsets."""
 
-    def __init__(self, channels: tuple[int, ...] = CHANNELS) -> None:
+    def __init__(self, channels: tuple[int, ...] = CHANNELS, blocks: tuple[int, ...] = BLOCKS,
+                 head: int = HEAD_CHANNELS) -> None:
         super().__init__()
         c = channels
         self.e1 = _cbr(1, c[0], 2)
-        self.e2 = nn.Sequential(_cbr(c[0], c[1], 2), _cbr(c[1], c[1]))
-        self.e3 = nn.Sequential(_cbr(c[1], c[2], 2), _cbr(c[2], c[2]))
-        self.e4 = nn.Sequential(_cbr(c[2], c[3], 2), _cbr(c[3], c[3]))
-        self.e5 = nn.Sequential(_cbr(c[3], c[4], 2), _cbr(c[4], c[4], dilation=2),
-                                _cbr(c[4], c[4], dilation=4))
-        self.d4 = _cbr(c[4] + c[3], c[3])
-        self.d3 = _cbr(c[3] + c[2], c[2])
-        self.d2 = _cbr(c[2] + c[1], c[1])
-        self.head = nn.Conv2d(c[1], len(OUTPUTS), 1)
+        self.e2 = nn.Sequential(_cbr(c[0], c[1], 2), *[_cbr(c[1], c[1]) for _ in range(blocks[0])])
+        self.e3 = nn.Sequential(_cbr(c[1], c[2], 2), *[_cbr(c[2], c[2]) for _ in range(blocks[1])])
+        self.e4 = nn.Sequential(_cbr(c[2], c[3], 2), *[_cbr(c[3], c[3]) for _ in range(blocks[2])])
+        self.e5 = nn.Sequential(_cbr(c[3], c[4], 2), *[_cbr(c[4], c[4], dilation=2 ** (k % 3))
+                                                       for k in range(blocks[3])])
+        self.lat4, self.lat3, self.lat2 = _lateral(c[3], c[3]), _lateral(c[2], c[2]), \
+            _lateral(c[1], c[1])
+        self.top4, self.top3, self.top2 = _lateral(c[4], c[3]), _lateral(c[3], c[2]), \
+            _lateral(c[2], c[1])
+        self.d4, self.d3, self.d2 = _cbr(c[3], c[3]), _cbr(c[2], c[2]), _cbr(c[1], c[1])
+        self.neck = _cbr(c[1], head)
+        self.head = nn.Conv2d(head, len(OUTPUTS), 1)
         self.up = nn.Upsample(scale_factor=2, mode="nearest")
         assert self.head.bias is not None
         with torch.no_grad():  # start from a low prior of a crater per cell (CenterNet)
@@ -52,7 +65,7 @@ class CraterNet(nn.Module):
         x3 = self.e3(x2)
         x4 = self.e4(x3)
         x5 = self.e5(x4)
-        y = self.d4(torch.cat([self.up(x5), x4], 1))
-        y = self.d3(torch.cat([self.up(y), x3], 1))
-        y = self.d2(torch.cat([self.up(y), x2], 1))
-        return self.head(y)
+        y = self.d4(torch.relu(self.up(self.top4(x5)) + self.lat4(x4)))
+        y = self.d3(torch.relu(self.up(self.top3(y)) + self.lat3(x3)))
+        y = self.d2(torch.relu(self.up(self.top2(y)) + self.lat2(x2)))
+        return self.head(self.neck(y))

@@ -71,7 +71,7 @@ def test_tiles_cover_a_large_image_once() -> None:
     net = _MarkerNet()
     det = learned.LearnedDetector(net, learned.LearnedOptions(refine=False, tile_px=2048,
                                                               tile_overlap_px=512))
-    out = det.detect(img)
+    out = det.detect(img, np.array([1.0, 0.0]))  # the Sun along +u: the image is not turned
     assert len(net.shapes) == 3  # three tiles along u, one along v
     assert all(s[2] % 32 == 0 and s[3] % 32 == 0 for s in net.shapes)
     got = sorted(map(tuple, np.round(out.centre_px).astype(int).tolist()))
@@ -91,3 +91,78 @@ def test_too_small_or_not_grey_image_is_refused() -> None:
         det.detect(np.zeros((4, 100)))
     with pytest.raises(ValueError, match="grey image"):
         det.detect(np.zeros((32, 32, 3)))
+
+
+@pytest.mark.parametrize(("azimuth_deg", "turns"), [(0, 0), (44, 0), (-44, 0), (80, 1), (170, 2),
+                                                    (-170, 2), (-100, 3), (-46, 3)])
+def test_canonical_turns_bring_the_sun_within_45_deg_of_plus_u(azimuth_deg, turns) -> None:
+    a = np.radians(azimuth_deg)
+    sun = np.array([np.cos(a), np.sin(a)])
+    assert learned.canonical_turns(sun) == turns
+    du, dv = sun
+    for _ in range(turns):  # np.rot90 turns a direction (du, dv) into (dv, -du)
+        du, dv = dv, -du
+    assert du >= abs(dv) - 1e-12
+
+
+@pytest.mark.parametrize("azimuth_deg", [0.0, 90.0, 180.0, 270.0])
+def test_detections_are_turned_back_to_the_image_axes(azimuth_deg) -> None:
+    img = np.zeros((96, 160), np.float32)
+    img[::2, ::2] = 1.0
+    marks = [(20, 12), (60, 140), (84, 36)]  # (v, u), on the 4 px grid
+    for v, u in marks:
+        img[v:v + 4, u:u + 4] = 50.0
+    net = _MarkerNet()
+    a = np.radians(azimuth_deg)
+    out = learned.LearnedDetector(net, learned.LearnedOptions(refine=False)).detect(
+        img, np.array([np.cos(a), np.sin(a)]))
+    turned = net.shapes[0][2:]
+    assert turned == ((96, 160) if azimuth_deg in (0.0, 180.0) else (160, 96))
+    got = sorted(map(tuple, np.round(out.centre_px).astype(int).tolist()))
+    assert got == sorted((u + 2, v + 2) for v, u in marks)
+
+
+class _LitFromPlusU:
+    """Stands in for a network trained on the canonical Sun: it finds a crater only where the
+    image shows a bowl lit from +u (dark on its +u wall, bright on its -u wall, as a crater under
+    a Sun towards +u shows), at the centre of each 8 x 8 block of the (turned) image."""
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        img = x[0, 0]
+        h, w = img.shape[0] // 8, img.shape[1] // 8
+        blocks = img[:8 * h, :8 * w].reshape(h, 8, w, 8)
+        lit = blocks[:, 2:6, :, 1:3].mean(axis=(1, 3)) - blocks[:, 2:6, :, 5:7].mean(axis=(1, 3))
+        maps = np.zeros((1, 4, img.shape[0] // 4, img.shape[1] // 4), np.float32)
+        maps[0, 0] = -8.0
+        maps[0, 0, 1::2, 1::2][:h, :w] = np.where(lit > 2.0, 6.0, -8.0)
+        maps[0, 1] = np.log(4.0)
+        maps[0, 2:4, 1::2, 1::2] = -0.5  # the block's centre: the corner of cell (2i+1, 2j+1)
+        return maps
+
+
+@pytest.mark.parametrize("azimuth_deg", [0.0, 90.0, 180.0, 270.0])
+def test_an_unknown_sun_is_found_by_the_more_confident_turn(azimuth_deg) -> None:
+    """Without the Sun's direction the detector tries the turns and keeps the one whose
+    detections are the more confident: the stand-in sees the bowls only the right way up."""
+    rng = np.random.default_rng(3)
+    a = np.radians(azimuth_deg)
+    sun = np.array([np.cos(a), np.sin(a)])
+    img = 100.0 + rng.normal(0.0, 1.0, (128, 128))
+    yy, xx = np.mgrid[0:8, 0:8] + 0.5
+    shade = -20.0 * ((xx - 4) * sun[0] + (yy - 4) * sun[1]) * (np.hypot(xx - 4, yy - 4) < 3.5)
+    centres = [(i, j) for i in range(2, 14, 3) for j in range(1, 15, 4)]
+    for i, j in centres:
+        img[8 * i:8 * i + 8, 8 * j:8 * j + 8] += shade
+    out = learned.LearnedDetector(_LitFromPlusU(), learned.LearnedOptions(
+        refine=False, min_diameter_px=4.0)).detect(img)
+    got = sorted(map(tuple, np.round(out.centre_px).astype(int).tolist()))
+    assert got == sorted((8 * j + 4, 8 * i + 4) for i, j in centres)
+
+
+def test_the_turn_with_more_sure_rims_beats_one_with_many_doubtful_ones() -> None:
+    """A wrongly lit image gives the network many doubtful mounds: their summed confidence may
+    exceed the right turn's, their count of sure rims does not."""
+    right, wrong = np.array([0.95, 0.9, 0.8, 0.5]), np.full(10, 0.6)
+    assert wrong.sum() > right.sum()
+    assert learned._lit_score(right) > learned._lit_score(wrong)
+    assert learned._lit_score(np.array([0.8, 0.5])) > learned._lit_score(np.array([0.8, 0.46]))

@@ -1,9 +1,12 @@
 """The terrain generator's inner loops, compiled: craters' profiles summed over a tile's nodes
-(`stamp`) and the fractal roughness (`fbm`).
+(`stamp`) or a renderer's height map (`stamp_map`) and the fractal roughness (`fbm`).
 
 - `stamp`: the profile arithmetic of `crater_shape.crater_profile` (the fresh Pike 1977 shape
   with the McGetchin et al. 1973 ejecta taper, or the diffused basis tables looked up
   bilinearly), one crater at a time over the 4 x 4 blocks of nodes its footprint meets;
+- `stamp_map`: the same profiles over the cells of a regular map (`height_map`), each crater
+  over the rows and cells its footprint's ellipse covers (measured on `images` frames, with the
+  compiled ray cast: 362-374 -> 136 ms a frame);
 - `xyf2vec`, `vec2xyf`: `tiles.xyf2vec` and `tiles.vec2xyf`, the HEALPix face coordinates
   and their unit vectors (every tile node, every terrain query);
 - `bicubic`: `Terrain._sample`'s Catmull-Rom read of the tiles' nodes;
@@ -22,7 +25,7 @@ import numba
 import numpy as np
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")
 def _profile(rho: float, depth: float, rim: float, floor: float, tau: float, extent: float,
              tables: np.ndarray, max_tau: float) -> float:
     """`crater_shape.crater_profile` at one rho (< extent): fresh when tau < 0; `tables`
@@ -85,6 +88,49 @@ def stamp(nodes: np.ndarray, blocks: np.ndarray, b_centre: np.ndarray, b_radius:
                     out[i] += _profile(rho, c_depth[c], c_rim[c], c_floor[c], c_tau[c], extent,
                                        tables, max_tau)
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def stamp_map(out: np.ndarray, row0: int, row1: int, x0: float, y0: float, cell: float,
+              c_xy: np.ndarray, c_inv: np.ndarray, c_depth: np.ndarray, c_rim: np.ndarray,
+              c_floor: np.ndarray, c_tau: np.ndarray, extent: float, tables: np.ndarray,
+              max_tau: float) -> None:
+    """Craters' profiles added into the rows [row0, row1) of a regular map `out` (ny, nx)
+    float64 (cell (i, j) at (x0 + j cell, y0 + i cell), m): each crater (map centres (K, 2) m;
+    `c_inv` (K, 4) its (s, t) / R = [[a0, a1], [a2, a3]] (dx, dy), the inverse Jacobian of its
+    local tangent coordinates over its radius, 1 / m; depth, rim height (m), floor fraction,
+    normalised age (< 0: fresh)) over the cells of each row within its footprint's ellipse
+    rho^2 = q00 dx^2 + 2 q01 dx dy + q11 dy^2 < extent^2 (one cell of slack, then rho <
+    extent as `stamp`); `tables` as `_profile`'s (unused when every age is < 0)."""
+    nx = out.shape[1]
+    e2 = extent * extent
+    for c in range(c_xy.shape[0]):
+        a0, a1, a2, a3 = c_inv[c, 0], c_inv[c, 1], c_inv[c, 2], c_inv[c, 3]
+        cx, cy = c_xy[c, 0], c_xy[c, 1]
+        q00, q01, q11 = a0 * a0 + a2 * a2, a0 * a1 + a2 * a3, a1 * a1 + a3 * a3
+        det = q00 * q11 - q01 * q01
+        if not (det > 0.0 and q00 > 0.0):
+            continue
+        dy_max = extent * np.sqrt(q00 / det)  # the ellipse's half height (m)
+        fi_lo = max((cy - dy_max - y0) / cell - 1.0, row0 - 1.0)
+        fi_hi = min((cy + dy_max - y0) / cell + 1.0, float(row1))
+        for i in range(max(int(np.ceil(fi_lo)), row0), min(int(np.floor(fi_hi)), row1 - 1) + 1):
+            dy = y0 + i * cell - cy
+            disc = (q01 * dy) ** 2 - q00 * (q11 * dy * dy - e2)
+            if disc < 0.0:
+                continue
+            half = np.sqrt(disc) / q00
+            mid = cx - q01 * dy / q00 - x0
+            fj_lo = max((mid - half) / cell - 1.0, -1.0)
+            fj_hi = min((mid + half) / cell + 1.0, float(nx))
+            for j in range(max(int(np.ceil(fj_lo)), 0), min(int(np.floor(fj_hi)), nx - 1) + 1):
+                dx = x0 + j * cell - cx
+                s = a0 * dx + a1 * dy
+                t = a2 * dx + a3 * dy
+                rho = np.sqrt(s * s + t * t)
+                if rho < extent:
+                    out[i, j] += _profile(rho, c_depth[c], c_rim[c], c_floor[c], c_tau[c],
+                                          extent, tables, max_tau)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -39,20 +39,26 @@ Frames and units: MCMF inputs (m), unit Sun vector, camera pose as in
 
 from __future__ import annotations
 
+import functools
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import fft
 from scipy.spatial import cKDTree
 
-from pipeline.core.body.crater_shape import CraterShapes, crater_profile, crater_shapes
+from pipeline.core.body.crater_shape import (
+    MAX_DEGRADATION,
+    CraterShapes,
+    basis_tables,
+    crater_profile,
+    crater_shapes,
+)
 from pipeline.core.body.surface import Surface
 from pipeline.core.math.constants import MOON_RADIUS_M
 from pipeline.core.sensors.camera import PixelCamera, ray_sphere_distance
 from pipeline.core.sensors.conics import tangent_basis
-
-_SIZE_LADDER = np.unique(np.round(2.0 ** (np.arange(2, 27) / 2.0)).astype(np.int64))  # 2..8192
 
 
 @dataclass(frozen=True)
@@ -210,55 +216,45 @@ def _stamp_craters(grid: MapGrid, q_f: np.ndarray, e1_f: np.ndarray, e2_f: np.nd
                    moon_radius: float, degradation: np.ndarray | None = None) -> np.ndarray:
     """Sum of crater profiles on the map (ny * nx,) float64. Each crater's local coordinates
     (s, t) (m, along its tangent basis e1, e2) are affine in the map coordinates through the
-    inverse of J = [[e1_x, e2_x], [e1_y, e2_y]] (F axes); boxes cover ejecta_extent R and are
-    padded to a ladder of sizes so each size class is one broadcast computation; `degradation`
-    (N,) the craters' normalised ages (None: all fresh)."""
-    total = grid.nx * grid.ny
-    m = _to_map(q_f, moon_radius)
-    j00, j01, j10, j11 = e1_f[:, 0], e2_f[:, 0], e1_f[:, 1], e2_f[:, 1]
+    inverse of J = [[e1_x, e2_x], [e1_y, e2_y]] (F axes); each is stamped over the cells of its
+    footprint (rho < ejecta_extent, an ellipse on the map), compiled
+    (`terrain_kernels.stamp_map`: `crater_shape.crater_profile`'s arithmetic), in bands of
+    rows on `opts.threads` threads; `degradation` (N,) the craters' normalised ages (None: all
+    fresh)."""
+    from pipeline.core.body import terrain_kernels  # lazy: the compiler where maps are made
+
+    out = np.zeros((grid.ny, grid.nx))
+    keep = np.flatnonzero((2 * radius_m / grid.cell >= opts.min_crater_cells) & (q_f[:, 2] > 0))
+    if not keep.size:
+        return out.reshape(-1)
+    m = _to_map(q_f[keep], moon_radius)
+    j00, j01, j10, j11 = e1_f[keep, 0], e2_f[keep, 0], e1_f[keep, 1], e2_f[keep, 1]
     det = j00 * j11 - j01 * j10
-    inv = np.stack([j11, -j01, -j10, j00], -1) / det[:, None]  # (s, t) = inv @ (dx, dy)
-    fro2 = j00**2 + j01**2 + j10**2 + j11**2
-    sigma_max = np.sqrt(0.5 * (fro2 + np.sqrt(np.maximum(fro2**2 - 4 * det**2, 0))))
-    reach = opts.ejecta_extent * radius_m * sigma_max / grid.cell + 1.0
-    cj = (m[:, 0] - grid.x0) / grid.cell
-    ci = (m[:, 1] - grid.y0) / grid.cell
-    j0 = np.maximum(np.floor(cj - reach), 0).astype(np.int64)
-    j1 = np.minimum(np.ceil(cj + reach), grid.nx - 1).astype(np.int64)
-    i0 = np.maximum(np.floor(ci - reach), 0).astype(np.int64)
-    i1 = np.minimum(np.ceil(ci + reach), grid.ny - 1).astype(np.int64)
-    keep = ((j1 >= j0) & (i1 >= i0) & (2 * radius_m / grid.cell >= opts.min_crater_cells)
-            & (q_f[:, 2] > 0))
-    if not keep.any():
-        return np.zeros(total)
-    sx = _SIZE_LADDER[np.searchsorted(_SIZE_LADDER, (j1 - j0 + 1)[keep])]
-    sy = _SIZE_LADDER[np.searchsorted(_SIZE_LADDER, (i1 - i0 + 1)[keep])]
-    idx = np.flatnonzero(keep)
-    key = sy * 100_000 + sx
-    flats, heights = [], []
-    for kv in np.unique(key):
-        sel = idx[key == kv]
-        ny_c, nx_c = int(kv // 100_000), int(kv % 100_000)
-        jj = j0[sel, None, None] + np.arange(nx_c)[None, None, :]
-        ii = i0[sel, None, None] + np.arange(ny_c)[None, :, None]
-        dx = (grid.x0 + jj * grid.cell - m[sel, 0, None, None]).astype(np.float32)
-        dy = (grid.y0 + ii * grid.cell - m[sel, 1, None, None]).astype(np.float32)
-        inv_r = (1.0 / radius_m[sel]).astype(np.float32)[:, None, None]
-        a = inv[sel].astype(np.float32)[:, :, None, None] * inv_r[:, None]
-        s = a[:, 0] * dx + a[:, 1] * dy
-        t = a[:, 2] * dx + a[:, 3] * dy
-        rho = np.sqrt(s * s + t * t)
-        f32 = np.float32
-        age = None if degradation is None else degradation[sel].astype(f32)[:, None, None]
-        h = crater_profile(rho, shapes.depth_m[sel].astype(f32)[:, None, None],
-                           shapes.rim_height_m[sel].astype(f32)[:, None, None],
-                           shapes.floor_fraction[sel].astype(f32)[:, None, None],
-                           opts.ejecta_extent, age)
-        inside = (jj < grid.nx) & (ii < grid.ny) & (rho < opts.ejecta_extent)
-        flats.append(np.where(inside, ii * grid.nx + jj, total).ravel())
-        heights.append(h.ravel())
-    acc = np.bincount(np.concatenate(flats), np.concatenate(heights), minlength=total + 1)
-    return acc[:total]
+    inv = np.stack([j11, -j01, -j10, j00], -1) / (det * radius_m[keep])[:, None]  # (s, t) / R
+    if degradation is None:
+        tau, tables = np.full(keep.size, -1.0), np.zeros((2, 2, 2, 2))
+    else:
+        tau = np.maximum(degradation[keep], 0.0)
+        tables = _basis_tables(float(opts.floor_fraction), float(opts.ejecta_extent))
+    args = (grid.x0, grid.y0, grid.cell, np.ascontiguousarray(m), np.ascontiguousarray(inv),
+            shapes.depth_m[keep], shapes.rim_height_m[keep], shapes.floor_fraction[keep], tau,
+            float(opts.ejecta_extent), tables, MAX_DEGRADATION)
+    bands = max(1, min(opts.threads, grid.ny))
+    edges = np.linspace(0, grid.ny, bands + 1).astype(int)
+    if bands == 1:
+        terrain_kernels.stamp_map(out, 0, grid.ny, *args)
+    else:  # the kernel releases the GIL; each band writes its own rows
+        with ThreadPoolExecutor(bands) as pool:
+            list(pool.map(lambda k: terrain_kernels.stamp_map(out, int(edges[k]),
+                                                              int(edges[k + 1]), *args),
+                          range(bands)))
+    return out.reshape(-1)
+
+
+@functools.lru_cache(maxsize=4)
+def _basis_tables(floor_fraction: float, extent: float) -> np.ndarray:
+    """`crater_shape.basis_tables`, kept (8 MB, stacked anew on each call)."""
+    return basis_tables(floor_fraction, extent)
 
 
 def frame_heights(grid: MapGrid, frame: MapFrame, c_mcmf_m: np.ndarray, diam_m: np.ndarray,

@@ -36,6 +36,7 @@ pointing towards the Sun (`pipeline.core.sensors.camera.sun_direction_image`).
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -64,6 +65,7 @@ class DetectOptions:
     psf_sigma_px: float = 0.5  # the camera's blur, for the curvature correction of the rims
     min_confidence: float = 0.2
     min_axis_ratio: float = 0.5  # semi-minor / semi-major; 0.5 ~ a rim seen 60 deg off-normal
+    threads: int = 2  # the rim fits' threads (`refine_rims`; the same answer on any number)
 
 
 # --- segmentation and blobs -----------------------------------------------------------------------
@@ -281,12 +283,24 @@ class RimFit:
 
 
 def refine_rims(g: np.ndarray, centre: np.ndarray, rad0: np.ndarray, sun: np.ndarray,
-                smooth_sigma_px: float, psf_sigma_px: float, n_angles: int = 64) -> RimFit:
+                smooth_sigma_px: float, psf_sigma_px: float, n_angles: int = 64,
+                threads: int = 1) -> RimFit:
     """Steps 3-4 of the module docstring on a smoothed image g (H, W) (Gaussian sigma
     smooth_sigma_px) around first guesses: centres (n, 2) px and radii (n,) px, Sun's unit image
     direction (2,): rim edges on radial profiles, weighted ellipse fit, twice (bands 0.4, 0.2 of
     the radius), then the semi-axes grown by (smooth^2 + psf^2) / (2 r) (a Gaussian-smoothed
-    circular edge peaks inside the rim by that much)."""
+    circular edge peaks inside the rim by that much). Each rim's fit is its own, so `threads`
+    share the rims (the same answer, ~2x faster on 2 cores: the array work releases the GIL)."""
+    n = len(np.asarray(rad0).reshape(-1))
+    if threads > 1 and n >= 2 * threads:
+        parts = np.array_split(np.arange(n), threads)
+        c_all, r_all = np.asarray(centre, dtype=float).reshape(-1, 2), np.asarray(rad0, float)
+        with ThreadPoolExecutor(threads) as pool:
+            fits = list(pool.map(lambda k: refine_rims(g, c_all[k], r_all[k], sun,
+                                                       smooth_sigma_px, psf_sigma_px,
+                                                       n_angles), parts))
+        return RimFit(*(np.concatenate([getattr(f, name) for f in fits])
+                        for name in RimFit.__dataclass_fields__))
     centre = np.asarray(centre, dtype=float).reshape(-1, 2)
     rad0 = np.asarray(rad0, dtype=float)
     perp = np.array([-sun[1], sun[0]])
@@ -349,7 +363,7 @@ def detect_craters(image: np.ndarray, sun_dir_image: np.ndarray,
     centre = np.outer(0.5 * (s_lo + s_hi), sun) + np.outer(0.5 * (p_lo + p_hi), perp)
     rad0 = 0.25 * ((s_hi - s_lo) + (p_hi - p_lo))
     fit = refine_rims(g, centre, rad0, sun, opts.smooth_sigma_px, opts.psf_sigma_px,
-                      opts.n_angles)
+                      opts.n_angles, opts.threads)
     centre, a, b, ang = fit.centre_px, fit.semi_major_px, fit.semi_minor_px, fit.angle_rad
     frac_used, resid = fit.frac_used, fit.residual
     rad0 = np.sqrt(a * b)
