@@ -93,14 +93,14 @@ def make_detector(name: str, *, min_diameter_px: float = 10.0, blur_sigma_px: fl
                   ) -> Detector:
     """The detector called `name` (`DETECTOR_NAMES`) with the smallest diameter kept (px) and
     the camera's blur (px); options classes override the defaults; `model` the ONNX file of the
-    learned one."""
+    learned one; `threads` the network's and the rim fits' (the same answer on any number)."""
     if name == ClassicalDetector.name:
         opts = classical or DetectOptions()
         return ClassicalDetector(replace(opts, min_diameter_px=min_diameter_px,
-                                         psf_sigma_px=blur_sigma_px))
+                                         psf_sigma_px=blur_sigma_px, threads=threads))
     if name == LearnedDetector.name:
         lo = learned or LearnedOptions()
         return LearnedDetector(OnnxNetwork(Path(model or DEFAULT_MODEL), threads),
                                replace(lo, min_diameter_px=min_diameter_px,
-                                       psf_sigma_px=blur_sigma_px))
+                                       psf_sigma_px=blur_sigma_px, threads=threads))
     raise ValueError(f"unknown detector {name!r}: one of {', '.join(DETECTOR_NAMES)}")
