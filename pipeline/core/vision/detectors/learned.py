@@ -13,10 +13,12 @@ The canonical Sun: the network was trained on images turned by quarter turns so 
 image direction lies within 45 deg of +u (`canonical_turns`), so it sees one lighting, not four.
 The detector turns the image the same way when the Sun's direction is given. When it is not
 (an image a user brings), the light's axis is estimated from the image
-(`sun_direction.estimate_sun_direction`) and the network runs at the turn it gives and at the
-opposite one (both, since the sign is the estimate's weak part: a crater lit from the wrong side
-reads as a mound), at all four when the estimate is unreliable; the turn with the more
-confident rims (`_lit_score`) is kept. Detections are turned back to the image's axes.
+(`sun_direction.estimate_sun_direction`, on a copy of at most `AXIS_WORK_PX`: 4x faster than at
+1024 px, and the same pair of turns on 22 of 23 real and rendered images, the other found
+unreliable) and the network runs at the turn it gives and at the opposite one (both, since the
+sign is the estimate's weak part: a crater lit from the wrong side reads as a mound), at all
+four when the estimate is unreliable; the turn with the more confident rims (`_lit_score`) is
+kept. Detections are turned back to the image's axes.
 
 Refinement (`refine`, when the Sun's image direction is known or estimated from the shading
 inside the decoded rims, `pipeline.core.vision.sun_direction.sun_from_rims`): the classical
@@ -49,6 +51,7 @@ from pipeline.core.vision.sun_direction import estimate_sun_direction, sun_from_
 
 STRIDE = 4
 MULTIPLE = 32  # the network's input sides must be multiples of this
+AXIS_WORK_PX = 512  # the light-axis estimate's working size: it only picks quarter turns
 Network = Callable[[np.ndarray], np.ndarray]  # (1, 1, H, W) float32 -> (1, 4, H/4, W/4)
 
 
@@ -171,7 +174,7 @@ class LearnedDetector:
         if sun_dir_image is not None:
             turns = [canonical_turns(sun_dir_image)]
         else:
-            est = estimate_sun_direction(img)
+            est = estimate_sun_direction(img, work_px=AXIS_WORK_PX)
             k = canonical_turns(est.direction) if est.reliable else 0
             turns = [k, (k + 2) % 4] if est.reliable else [0, 1, 2, 3]
         found = [self._decoded(x, k) for k in turns]
