@@ -155,3 +155,40 @@ def test_sensor_noise_and_quantisation():
     assert dn.std() * gain == pytest.approx(np.sqrt(5000.0 + 900.0), rel=0.03)
     _, _, img8 = exposure.expose(rad * 10, np.random.default_rng(3), exposure.SensorOptions())
     assert img8.dtype == np.uint8 and img8.max() == 255  # saturates
+
+
+def test_the_compiled_ray_cast_meets_a_raised_sphere_where_geometry_says() -> None:
+    """`render_kernels.cast_rays` over a flat map raised by H: each ray meets the sphere of
+    radius R + H where |q0 + t d| = R + H (the Newton steps converge on a flat map), reads the
+    height H, the radial normal's cosines, the shadow where the margin says, and misses the
+    Moon above the horizon."""
+    from pipeline.core.sensors import render_kernels
+
+    r_m, h_m, alt_m = MOON_RADIUS_M, 50.0, 20e3
+    q0 = np.array([0.0, 0.0, r_m + alt_m])
+    ang = np.radians([0.0, 3.0, -5.0, 89.0])  # off-nadir, in the x-z plane; the last misses
+    rays = np.stack([np.sin(ang), np.zeros(4), -np.cos(ang)]).astype(np.float32)
+    n = rays.shape[1]
+    ny, nx, cell = 81, 81, 100.0
+    height = np.full((ny, nx), h_m)
+    margin = np.where(np.arange(nx)[None, :] > nx // 2 + 5, 1.0, -1.0) * np.ones((ny, 1))
+    sun = np.array([0.6, 0.0, 0.8])
+    out = {k: np.empty(n, np.float32) for k in ("height", "cos_i", "cos_e", "cos_g")}
+    hit, shadow = np.empty(n, bool), np.empty(n, bool)
+    render_kernels.cast_rays(rays, 0, n, np.eye(3), q0, q0 @ q0 - r_m**2, r_m,
+                             -cell * (nx // 2), -cell * (ny // 2), cell, height, margin, True, 6,
+                             sun, hit, out["height"], out["cos_i"], out["cos_e"], out["cos_g"],
+                             shadow)
+    np.testing.assert_array_equal(hit, [True, True, True, False])
+    d = rays[:, :3].T.astype(float)
+    b = d @ q0
+    t = -b - np.sqrt(b * b - (q0 @ q0 - (r_m + h_m) ** 2))
+    p = q0 + t[:, None] * d
+    normal = p / np.linalg.norm(p, axis=1, keepdims=True)
+    np.testing.assert_allclose(out["height"][:3], h_m, atol=1e-3)
+    np.testing.assert_allclose(out["cos_e"][:3], -(normal * d).sum(1), atol=1e-6)
+    np.testing.assert_allclose(out["cos_i"][:3], normal @ sun, atol=1e-6)
+    np.testing.assert_allclose(out["cos_g"][:3], -(d @ sun), atol=1e-6)
+    x_hit = r_m * p[:, 0] / np.linalg.norm(p, axis=1)  # the map's x of each hit
+    np.testing.assert_array_equal(shadow[:3], x_hit > cell * 5.5)
+    assert shadow[:3].any() and not shadow[:3].all()

@@ -89,3 +89,40 @@ def test_the_compiled_stamp_sums_every_profile_over_every_node(aged: bool) -> No
         0.0).sum(axis=1)
     assert np.abs(ref).max() > 100.0
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("aged", [False, True])
+def test_the_compiled_map_stamp_sums_every_profile_over_every_cell(aged: bool) -> None:
+    """`stamp_map` (the renderer's height map) against each crater's profile summed over every
+    cell of the map (no culling), craters seen obliquely (sheared, stretched footprints), and the
+    same sum when the rows are stamped in two bands (the threads' split)."""
+    from pipeline.core.body import terrain_kernels
+
+    rng = np.random.default_rng(7)
+    ny, nx, cell, x0, y0 = 40, 50, 10.0, -250.0, -200.0
+    n = 80
+    xy = rng.uniform([-300.0, -250.0], [300.0, 250.0], (n, 2))
+    radius = np.exp(rng.uniform(np.log(8.0), np.log(150.0), n))
+    jac = np.eye(2) + rng.uniform(-0.4, 0.4, (n, 2, 2))  # (dx, dy) per (s, t)
+    inv = np.linalg.inv(jac) / radius[:, None, None]  # (s, t) / R per (dx, dy)
+    depth, rim = 0.196 * 2 * radius, 0.036 * 2 * radius
+    floor = np.where(radius > 100.0, 0.4, 0.0)
+    tau = rng.uniform(0.0, 0.1, n) if aged else np.full(n, -1.0)
+    tables = (crater_shape.basis_tables(0.4, 2.0) if aged else np.zeros((2, 2, 2, 2)))
+    args = (x0, y0, cell, xy, np.ascontiguousarray(inv.reshape(n, 4)), depth, rim, floor, tau,
+            2.0, tables, crater_shape.MAX_DEGRADATION)
+    got = np.zeros((ny, nx))
+    terrain_kernels.stamp_map(got, 0, ny, *args)
+    banded = np.zeros((ny, nx))
+    terrain_kernels.stamp_map(banded, 0, 17, *args)
+    terrain_kernels.stamp_map(banded, 17, ny, *args)
+    gy, gx = np.mgrid[0:ny, 0:nx]
+    d = np.stack([x0 + gx * cell, y0 + gy * cell], -1).reshape(-1, 1, 2) - xy  # (M, n, 2)
+    rho = np.linalg.norm(np.einsum("nij,mnj->mni", inv, d), axis=-1)
+    shape = np.broadcast_to(depth, rho.shape), np.broadcast_to(rim, rho.shape)
+    ref = np.where(rho < 2.0, crater_shape.crater_profile(
+        rho, *shape, np.broadcast_to(floor, rho.shape), 2.0,
+        np.broadcast_to(tau, rho.shape) if aged else None), 0.0).sum(axis=1).reshape(ny, nx)
+    assert np.abs(ref).max() > 20.0
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
+    np.testing.assert_array_equal(banded, got)
