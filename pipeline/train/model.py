@@ -1,14 +1,14 @@
 """The learned crater detector's network (PyTorch; only `pipeline.train` imports torch).
 
-An encoder to stride 32 (dilated convolutions at the bottom: a receptive field of ~700 px, so
-rims of several hundred pixels are seen whole) and a feature-pyramid decoder (Lin et al. 2017,
+An encoder to stride 32 (its last convolution dilated: a receptive field of ~420 px, so rims of
+a few hundred pixels are seen whole) and a feature-pyramid decoder (Lin et al. 2017,
 "Feature pyramid networks for object detection", CVPR: each level's lateral 1 x 1 projection
 added to the upsampled coarser one, then a 3 x 3 convolution) back to stride 4, where
 CenterNet-style heads (Zhou, Wang & Krähenbühl 2019, "Objects as points", arXiv:1904.07850) on
 a 3 x 3 convolution predict a crater-centre heatmap logit, the log of the rim radius (px) and
 the centre's offset from the cell (du, dv in cells). Batch normalisation throughout (folded
-into the convolutions at export). ~1.4 M parameters (~5.5 MB as float32, ~2.8 MB as the
-exported float16 file). Input: one channel, the image normalised by
+into the convolutions at export). 1.04 M parameters (4.2 MB as the exported float32 ONNX).
+Input: one channel, the image normalised by
 `pipeline.core.vision.detectors.learned.normalise`, turned so that the Sun shines from +u
 (`learned.canonical_turns`); height and width multiples of 32.
 """

@@ -164,10 +164,12 @@ def _diffused_tables(floor_fraction: float, extent: float, dtype: str = "<f8"
     return out[0], out[1]
 
 
+@functools.lru_cache(maxsize=4)
 def basis_tables(floor_fraction: float, extent: float) -> np.ndarray:
     """The diffused rim and bowl bases (2, 2, _N_S, _N_RHO) float64 for a bowl (floor 0) and for
     `floor_fraction`: the tables `crater_profile` looks up (over sqrt(tau) in
-    [0, sqrt(MAX_DEGRADATION)] and rho in [0, extent])."""
+    [0, sqrt(MAX_DEGRADATION)] and rho in [0, extent]); kept (8 MB; the compiled stamps read
+    them, none writes)."""
     return np.stack([np.stack(_diffused_tables(f, float(extent))) for f in (0.0, floor_fraction)])
 
 

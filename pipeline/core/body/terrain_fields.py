@@ -183,7 +183,6 @@ class CraterField:
         self.floor_fraction, self.extent, self.radius_m = floor_fraction, ejecta_extent, radius_m
         self.classes: list[_SizeClass] = []
         self._shape = (np.empty(0), np.empty(0), np.empty(0))
-        self._basis: np.ndarray | None = None
         if not self.diam_m.size:
             self.rim_max_m = self.depth_max_m = 0.0
             return
@@ -227,10 +226,8 @@ class CraterField:
         return out
 
     def _tables(self) -> np.ndarray:
-        """The profile tables of the compiled stamp (`crater_shape.basis_tables`), kept."""
-        if self._basis is None:
-            self._basis = crater_shape.basis_tables(self.floor_fraction, self.extent)
-        return self._basis
+        """The profile tables of the compiled stamp (`crater_shape.basis_tables`, kept there)."""
+        return crater_shape.basis_tables(self.floor_fraction, self.extent)
 
     def relief_at(self, u: np.ndarray, min_diam_m: np.ndarray) -> np.ndarray:
         """Summed crater heights (m) at scattered unit vectors u (N, 3), each point from the

@@ -39,7 +39,6 @@ Frames and units: MCMF inputs (m), unit Sun vector, camera pose as in
 
 from __future__ import annotations
 
-import functools
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -235,7 +234,7 @@ def _stamp_craters(grid: MapGrid, q_f: np.ndarray, e1_f: np.ndarray, e2_f: np.nd
         tau, tables = np.full(keep.size, -1.0), np.zeros((2, 2, 2, 2))
     else:
         tau = np.maximum(degradation[keep], 0.0)
-        tables = _basis_tables(float(opts.floor_fraction), float(opts.ejecta_extent))
+        tables = basis_tables(float(opts.floor_fraction), float(opts.ejecta_extent))
     args = (grid.x0, grid.y0, grid.cell, np.ascontiguousarray(m), np.ascontiguousarray(inv),
             shapes.depth_m[keep], shapes.rim_height_m[keep], shapes.floor_fraction[keep], tau,
             float(opts.ejecta_extent), tables, MAX_DEGRADATION)
@@ -249,12 +248,6 @@ def _stamp_craters(grid: MapGrid, q_f: np.ndarray, e1_f: np.ndarray, e2_f: np.nd
                                                               int(edges[k + 1]), *args),
                           range(bands)))
     return out.reshape(-1)
-
-
-@functools.lru_cache(maxsize=4)
-def _basis_tables(floor_fraction: float, extent: float) -> np.ndarray:
-    """`crater_shape.basis_tables`, kept (8 MB, stacked anew on each call)."""
-    return basis_tables(floor_fraction, extent)
 
 
 def frame_heights(grid: MapGrid, frame: MapFrame, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
