@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from pipeline.config import RunConfig
-from pipeline.core.body.terrain import MapErrorOptions, TerrainOptions
+from pipeline.core.body.terrain import MapErrorOptions, Terrain, TerrainOptions
 from pipeline.core.body.terrain_fields import LatLonGrid
 from pipeline.core.guidance import ApolloOptions
 from pipeline.core.guidance.fly import TouchdownLimits
@@ -201,7 +201,12 @@ def run(ctx: StageContext) -> StageResult:
     row = touchdown.row(0, named=True)
     tx.output("touchdown.json").write_text(json.dumps(row, indent=2, default=float) + "\n")
     folder = ctx.store.stage_dir("fly")
-    return StageResult(info={"status": rec.status, "miss_m": row["miss_m"]}, summary=(
+    info = {"status": rec.status, "miss_m": row["miss_m"]}
+    terrain = world_surface if isinstance(world_surface, Terrain) else None
+    if terrain is not None:  # the terrain's share of the stage (its queries, tiles included)
+        info |= {"terrain_query_s": round(terrain.clock.seconds, 3),
+                 "terrain_queries": terrain.clock.calls, "terrain_tiles_made": terrain.cache.made}
+    return StageResult(info=info, summary=(
         f"flew {t_end:.1f} s ({rec.steps:,} steps): {rec.status}"
         + (f" ({rec.reason})" if rec.reason else "")
         + (f"; missed the site by {row['miss_m']:.2f} m (knowledge error "
@@ -212,7 +217,10 @@ def run(ctx: StageContext) -> StageResult:
            if rec.contact is not None else "")
         + ("" if rec.hazard_status == "off" else
            f"; hazard scan: {rec.hazard_status.replace('_', ' ')}"
-           + (f" {row['divert_m']:.2f} m" if rec.hazard_status == "diverted" else "")),
+           + (f" {row['divert_m']:.2f} m" if rec.hazard_status == "diverted" else ""))
+        + ("" if terrain is None else
+           f"; terrain: {terrain.clock.seconds:.1f} s in {terrain.clock.calls:,} queries, "
+           f"{terrain.cache.made:,} tiles made"),
         f"wrote {folder / 'touchdown.parquet'}, guidance.parquet, trajectory.parquet, imu.parquet,"
         " imu_truth.parquet, altimeter.parquet, detections.parquet, frames.parquet, "
         "navigation.parquet, site_terrain.parquet, hazard_scan.parquet",

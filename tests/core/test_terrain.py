@@ -257,3 +257,27 @@ def test_cache_bounds_memory_and_eviction_changes_nothing():
     fresh._sample(u[:40], np.full(40, o), False)
     with pytest.raises(RuntimeError, match="too small"):
         fresh._sample(u[2:], np.full(43, o), False)
+
+
+def test_a_ray_meets_the_terrain_where_it_does_whatever_the_cache_held():
+    # grazing rays over rough, cratered ground read many tiles in turn: through a cache that
+    # holds 12 (tiles evicted between a ray's steps and made again), through a big one, one by
+    # one and all together, the answers are the same, bit for bit, and the rays are stopped and
+    # resumed as their tiles are made
+    kw = dict(seed=8, base="none", tile_cells=16, roughness_rms_slope_deg=8.0)
+    c = np.array([[R, 0.0, 0.0], [R, 900.0, 300.0]])
+    d_m = np.array([1500.0, 700.0])
+    small = Terrain.build(TerrainOptions(**kw, cache_mib=12 * 19**2 * 4 / 2**20), c, d_m)
+    big = Terrain.build(TerrainOptions(**kw), c, d_m)
+    rng = np.random.default_rng(2)
+    n = 8
+    o = _east_of_centre(rng.uniform(-3000.0, -1000.0, n), 40.0)
+    o[:, 2] = rng.uniform(-500.0, 500.0, n)
+    d = np.array([-0.03, 1.0, 0.0]) + rng.normal(0, 0.005, (n, 3))  # 1.7 deg down, east
+    res = np.full(n, 2.0)
+    together = big.intersect(o, d, res)
+    assert np.isfinite(together).all() and big.cache.made > 12
+    one_by_one = np.array([small.intersect(o[i], d[i], 2.0) for i in range(n)])
+    assert small.cache.made > small.cache.capacity
+    assert np.array_equal(together, one_by_one)
+    assert np.array_equal(together, small.intersect(o, d, res))

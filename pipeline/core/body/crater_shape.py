@@ -141,27 +141,36 @@ def _diffused_tables(floor_fraction: float, extent: float, dtype: str = "<f8"
     in [0, sqrt(MAX_DEGRADATION)] and rho in [0, extent]; row 0 is the fresh shape itself."""
     if dtype != "<f8":
         return tuple(t.astype(dtype) for t in _diffused_tables(floor_fraction, extent))  # type: ignore[return-value]
-    rho = np.linspace(0.0, extent, _N_RHO)
-    fine = np.linspace(0.0, extent, 4 * (_N_RHO - 1) + 1)
+    rho, fine, k, norm, j0_fine, j0_rho = _hankel_basis(extent)
     f = floor_fraction
     u = np.maximum(fine - f, 0) / (1 - f)
     bases = (np.where(fine <= 1, 1.0, ejecta_taper(fine, extent)),  # rim: h_r = 1, d = 0
              np.where(fine <= 1, u * u - 1.0, 0.0))  # bowl: h_r = 0, d = 1
-    zeros = special.jn_zeros(0, _N_TERMS)
-    k = zeros / extent
-    norm = 2.0 / (extent ** 2 * special.j1(zeros) ** 2)
-    j0_fine = special.j0(np.outer(k, fine))  # (terms, fine)
-    j0_rho = special.j0(np.outer(k, rho))  # (terms, rho)
+    weights = np.full(fine.size, fine[1] - fine[0])  # the trapezoid rule on the fine grid
+    weights[[0, -1]] *= 0.5
     s = np.linspace(0.0, np.sqrt(MAX_DEGRADATION), _N_S)
     decay = np.exp(-np.outer(s * s, k * k))  # (S, terms)
     out = []
     for b in bases:
-        c = norm * np.trapezoid(fine * b * j0_fine, fine, axis=1)
+        c = norm * (j0_fine @ (weights * fine * b))
         table = (decay * c) @ j0_rho
         table[0] = np.interp(rho, fine, b)
         table[:, -1] = 0.0
         out.append(table)
     return out[0], out[1]
+
+
+@functools.lru_cache(maxsize=4)
+def _hankel_basis(extent: float) -> tuple[np.ndarray, ...]:
+    """The Fourier-Bessel series on [0, extent] (zero at extent): the table's rho (_N_RHO,),
+    the fine grid of the transform, wavenumbers k (terms,), normalisations, and J0(k rho) on
+    both grids (terms, fine) and (terms, rho); shared by every floor fraction."""
+    rho = np.linspace(0.0, extent, _N_RHO)
+    fine = np.linspace(0.0, extent, 4 * (_N_RHO - 1) + 1)
+    zeros = special.jn_zeros(0, _N_TERMS)
+    k = zeros / extent
+    norm = 2.0 / (extent ** 2 * special.j1(zeros) ** 2)
+    return rho, fine, k, norm, special.j0(np.outer(k, fine)), special.j0(np.outer(k, rho))
 
 
 @functools.lru_cache(maxsize=4)

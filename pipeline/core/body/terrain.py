@@ -33,8 +33,12 @@ vectors.
 
 from __future__ import annotations
 
+import functools
+import time
+from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -56,6 +60,8 @@ from pipeline.core.sensors.conics import tangent_basis
 
 BASES = ("synthetic", "grid", "none")
 _BATCH = 64  # tiles made together (bounds the temporaries: ~0.5 MB per tile)
+_ANCESTOR_UP = 3  # a tile's crater candidates from its ancestor's, 3 levels up (8 x 8 tiles)
+_ANCESTORS_KEPT = 4096  # ancestors' candidate lists kept (LRU)
 Resolution = float | np.ndarray | None  # the ground resolution (m) a query needs
 SURROUNDINGS_PER_DIAMETER = 1.4  # a crater's surroundings: read where it is unstamped (< 1.5 cells)
 
@@ -130,6 +136,7 @@ class _Generator:
         self.max_order = int(tiles.order_for(opts.finest_resolution_m, opts.tile_cells,
                                              opts.radius_m, 0, tiles.MAX_ORDER))
         self._margins = self._margin_table()
+        self._ancestors: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
 
     def spacing_m(self, order: np.ndarray | int) -> np.ndarray:
         return tiles.spacing_m(order, self.opts.tile_cells, self.opts.radius_m)
@@ -204,14 +211,73 @@ class _Generator:
                 v += self.base.height_m(pts)
             w = tiles.upsample_matrix(n, k) if k > 1 else None
             h += v if w is None else w @ v @ w.T
+        min_diam_m = self.opts.min_crater_cells * delta
         h += self.craters.relief_many_m(
-            nodes.reshape(keys.size, -1, 3), self.blocks,
-            np.full(keys.size, self.opts.min_crater_cells * delta)).reshape(h.shape)
+            nodes.reshape(keys.size, -1, 3), self.blocks, min_diam_m,
+            lambda c, r: self._near(keys, order, min_diam_m, c, r)).reshape(h.shape)
         return h
+
+    def _near(self, keys: np.ndarray, order: int, min_diam_m: float, centre: np.ndarray,
+              radius_rad: np.ndarray) -> list[np.ndarray]:
+        """`CraterField.near` for tiles (caps: unit centres (T, 3), radii (T,) rad) of one
+        level, from the candidates of their ancestor `_ANCESTOR_UP` levels up (queried once
+        per ancestor and kept, LRU): the same rows, without a k-d query per tile."""
+        up = min(_ANCESTOR_UP, order)
+        anc = tiles.tile_key(order - up, (keys >> 52) & 15, ((keys >> 26) & ((1 << 26) - 1)) >> up,
+                             (keys & ((1 << 26) - 1)) >> up)
+        new = np.array([a for a in np.unique(anc).tolist() if (a, order) not in self._ancestors],
+                       dtype=np.int64)
+        if new.size:
+            # the ancestor's cap over its node ring (every child's nodes inside), padded 5 %
+            n = self.opts.tile_cells
+            pts = tiles._lattice(new, np.linspace(-1.0 / n, (n + 1.0) / n, 9)).reshape(
+                new.size, -1, 3)
+            c = pts.mean(axis=1)
+            c /= np.linalg.norm(c, axis=1, keepdims=True)
+            r = np.arccos(np.clip(np.einsum("tmi,ti->tm", pts, c), -1, 1)).max(axis=1)
+            rows = self.craters.near(c, np.minimum(1.05 * r, np.pi), np.full(new.size, min_diam_m))
+            for a, found in zip(new.tolist(), rows, strict=True):
+                self._ancestors[(a, order)] = found
+                if len(self._ancestors) > _ANCESTORS_KEPT:
+                    self._ancestors.popitem(last=False)
+        out = []
+        for i, a in enumerate(anc.tolist()):
+            self._ancestors.move_to_end((a, order))
+            out.append(self.craters.within(self._ancestors[(a, order)], centre[i],
+                                           float(radius_rad[i]), min_diam_m))
+        return out
 
 
 def _rows(a: np.ndarray) -> np.ndarray:
     return np.asarray(a, dtype=float).reshape(-1, 3)
+
+
+@dataclass
+class QueryClock:
+    """Wall time (s) in a terrain's queries (the outermost calls: tiles made included) and
+    their count; a terrain and its navigator's map share one."""
+
+    seconds: float = 0.0
+    calls: int = 0
+    depth: int = 0
+
+
+def _clocked(query: Callable[..., np.ndarray]) -> Callable[..., np.ndarray]:
+    """The query, its time added to the terrain's `clock` unless it runs inside another."""
+    @functools.wraps(query)
+    def timed(self: Terrain, *args: Any, **kwargs: Any) -> np.ndarray:
+        clock = self.clock
+        if clock.depth:
+            return query(self, *args, **kwargs)
+        clock.depth += 1
+        t0 = time.perf_counter()
+        try:
+            return query(self, *args, **kwargs)
+        finally:
+            clock.seconds += time.perf_counter() - t0
+            clock.calls += 1
+            clock.depth -= 1
+    return timed
 
 
 class Terrain:
@@ -222,8 +288,9 @@ class Terrain:
 
     def __init__(self, gen: _Generator, dcm_truth_from_map: np.ndarray | None = None,
                  bias_m: float = 0.0, min_resolution_m: float = 0.0,
-                 cache: tiles.TileCache | None = None) -> None:
+                 cache: tiles.TileCache | None = None, clock: QueryClock | None = None) -> None:
         self._gen = gen
+        self.clock = clock if clock is not None else QueryClock()
         self.opts = gen.opts
         self.reference_radius_m = gen.opts.radius_m
         self._rot = dcm_truth_from_map
@@ -260,7 +327,7 @@ class Terrain:
 
     def navigator_map(self, errors: MapErrorOptions) -> Terrain:
         """The navigator's map of this terrain (module docstring). It reads the truth's tiles
-        (in the truth's frame, at its own resolutions): one cache serves both."""
+        (in the truth's frame, at its own resolutions): one cache and one clock serve both."""
         rng = stream(errors.seed, "map")
         draw = rng.standard_normal(3)
         east = errors.shift_east_m + errors.shift_sigma_m * draw[0]
@@ -275,7 +342,7 @@ class Terrain:
         dcm_truth_from_map = Rotation.from_rotvec(rotvec).as_matrix().T
         return Terrain(self._gen, dcm_truth_from_map,
                        errors.bias_m + errors.bias_sigma_m * draw[2], errors.resolution_m,
-                       self.cache)
+                       self.cache, self.clock)
 
     # --- sampling ---------------------------------------------------------------------------------
 
@@ -331,11 +398,13 @@ class Terrain:
 
     # --- the Surface interface --------------------------------------------------------------------
 
+    @_clocked
     def height_m(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Height (m) above the reference sphere at unit directions u_mcmf (..., 3)."""
         shape = np.shape(u_mcmf)[:-1]
         return self._eval(u_mcmf, resolution_m, False)[0].reshape(shape)
 
+    @_clocked
     def normal(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Outward unit normals (..., 3): n ~ u - R / (R + h) grad h."""
         shape = np.shape(u_mcmf)
@@ -345,6 +414,7 @@ class Terrain:
         nv = u - (r / (r + h))[:, None] * g
         return (nv / np.linalg.norm(nv, axis=1, keepdims=True)).reshape(shape)
 
+    @_clocked
     def slope_deg(self, u_mcmf: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Local slope (deg): the angle between the normal and the local vertical."""
         u = _rows(u_mcmf)
@@ -352,6 +422,7 @@ class Terrain:
         cos = np.einsum("ni,ni->n", self.normal(u, resolution_m), u)
         return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).reshape(np.shape(u_mcmf)[:-1])
 
+    @_clocked
     def altitude_m(self, r_mcmf_m: np.ndarray, resolution_m: Resolution = None) -> np.ndarray:
         """Height (m) of points (..., 3) above the terrain straight below them."""
         r = _rows(r_mcmf_m)
@@ -359,6 +430,7 @@ class Terrain:
         h = self._eval(r / rn[:, None], resolution_m, False)[0]
         return (rn - self.reference_radius_m - h).reshape(np.shape(r_mcmf_m)[:-1])
 
+    @_clocked
     def rim_crest_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
                             degradation: np.ndarray | None = None) -> np.ndarray:
         """Rim crest heights (m) of craters (centres (N, 3), their directions; diameters (N,)
@@ -375,6 +447,7 @@ class Terrain:
         around = self._gen.heights_at(self._true(u)[:, None, :], order)[:, 0] + self.bias_m
         return around + self.rim_height_m(d, degradation)
 
+    @_clocked
     def rim_circle_heights_m(self, c_mcmf_m: np.ndarray, diam_m: np.ndarray,
                              n_points: int = 32) -> np.ndarray:
         """Mean height (m) over each crater's rim circle (arc distance D / 2 from the centre's
@@ -417,6 +490,7 @@ class Terrain:
         """Bytes of the tiles held in the cache now."""
         return self.cache.resident_bytes
 
+    @_clocked
     def intersect(self, origin_mcmf_m: np.ndarray, direction_mcmf: np.ndarray,
                   resolution_m: Resolution = None, max_range_m: Resolution = None
                   ) -> np.ndarray:
@@ -435,16 +509,15 @@ class Terrain:
         return march(self, o, d / np.linalg.norm(d, axis=1, keepdims=True), res,
                      reach).reshape(shape)
 
-    # hooks for the ray march
-    def _f(self, p: np.ndarray, res: np.ndarray, deriv: bool
-           ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-        """Height above the terrain f = |p| - R - h (N,), the gradient of h (N, 3) and |p|."""
-        rn = np.linalg.norm(p, axis=1)
-        h, g, _ = self._eval(p / rn[:, None], res, deriv)
-        return rn - self.reference_radius_m - h, g, rn
-
-    def _margin(self, res: np.ndarray) -> np.ndarray:
-        return self._gen.margin_m(self._order(res, res.size))
+    def _reader(self) -> tuple[int, np.ndarray, float, float, float, int, np.ndarray]:
+        """What the compiled march (`terrain_kernels.march_rays`) needs to read this surface as
+        `_eval` does: tile cells, the truth-from-map rotation (identity for the truth), bias
+        (m), finest resolution (m), the level formula's face side (m), the finest level and
+        the finer terrain's bound per level (m)."""
+        rot = np.eye(3) if self._rot is None else np.ascontiguousarray(self._rot)
+        return (self.opts.tile_cells, rot, self.bias_m, self.min_resolution_m,
+                self.reference_radius_m * tiles.FACE_SIDE_M_PER_RADIUS, self._gen.max_order,
+                self._gen._margins)
 
     @property
     def _bounds_m(self) -> tuple[float, float]:

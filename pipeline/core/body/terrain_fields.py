@@ -25,6 +25,7 @@ craters whose footprint holds them straight from the trees (`relief_at`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -216,14 +217,18 @@ class CraterField:
             for i, hit in zip(ask.tolist(), hits, strict=True):
                 if hit:
                     found[i].append(c.rows[np.asarray(hit, dtype=np.int64)])
-        out = []
-        for i, parts in enumerate(found):
-            rows = np.sort(np.concatenate(parts)) if parts else np.empty(0, np.int64)
-            ang = np.arccos(np.clip(self.u[rows] @ centre[i], -1.0, 1.0))
-            reach = self.extent * self.diam_m[rows] / 2.0 / self.radius_m
-            out.append(rows[(ang <= radius_rad[i] + reach)
-                            & (self.diam_m[rows] >= min_diam_m[i])])
-        return out
+        return [self.within(np.sort(np.concatenate(parts)) if parts else np.empty(0, np.int64),
+                            centre[i], float(radius_rad[i]), float(min_diam_m[i]))
+                for i, parts in enumerate(found)]
+
+    def within(self, rows: np.ndarray, centre: np.ndarray, radius_rad: float, min_diam_m: float
+               ) -> np.ndarray:
+        """The rows (ascending) among `rows` (ascending) of craters of diameter >= min_diam_m
+        whose footprint comes within the cap (unit centre (3,), radius rad): `near`'s test,
+        also for a cap inside one `near` already answered."""
+        ang = np.arccos(np.clip(self.u[rows] @ centre, -1.0, 1.0))
+        reach = self.extent * self.diam_m[rows] / 2.0 / self.radius_m
+        return rows[(ang <= radius_rad + reach) & (self.diam_m[rows] >= min_diam_m)]
 
     def _tables(self) -> np.ndarray:
         """The profile tables of the compiled stamp (`crater_shape.basis_tables`, kept there)."""
@@ -266,20 +271,29 @@ class CraterField:
             self.diam_m[rows] / 2.0)
         inside = rho < self.extent
         pt, rows, rho = pt[inside], rows[inside], rho[inside]
+        from pipeline.core.body import terrain_kernels  # lazy: the compiler where it is used
+
         depth, rim, floor = (a[rows] for a in self._shape)
-        h = crater_shape.crater_profile(rho, depth, rim, floor, self.extent,
-                                        None if self.degradation is None
-                                        else self.degradation[rows])
+        tau = np.full(rows.size, -1.0) if self.degradation is None else self.degradation[rows]
+        h = terrain_kernels.profiles(rho, depth, rim, floor, tau, self.extent, self._tables(),
+                                     crater_shape.MAX_DEGRADATION)
         return out + np.bincount(pt, h, minlength=out.size)
 
-    def relief_many_m(self, nodes: np.ndarray, blocks: np.ndarray, min_diam_m: np.ndarray
+    def relief_many_m(self, nodes: np.ndarray, blocks: np.ndarray, min_diam_m: float,
+                      near: Callable[[np.ndarray, np.ndarray], list[np.ndarray]] | None = None
                       ) -> np.ndarray:
-        """`relief_m` of several node sets (T, M, 3) at once (one crater query for all)."""
+        """`relief_m` of several node sets (T, M, 3) at once, each from the craters at least
+        min_diam_m across: their candidates by `near(centres (T, 3), radii (T,))` (default
+        one `near` query for all)."""
         centre = nodes.mean(axis=1)
         centre /= np.linalg.norm(centre, axis=1, keepdims=True)
         rad = np.arccos(np.clip(np.einsum("tmi,ti->tm", nodes, centre), -1, 1)).max(axis=1)
-        rows = self.near(centre, rad, min_diam_m) if self.diam_m.size else [
-            np.empty(0, np.int64)] * nodes.shape[0]
+        if not self.diam_m.size:
+            rows = [np.empty(0, np.int64)] * nodes.shape[0]
+        elif near is not None:
+            rows = near(centre, rad)
+        else:
+            rows = self.near(centre, rad, np.full(nodes.shape[0], min_diam_m))
         return np.stack([self.relief_m(nodes[i], blocks, rows[i])
                          for i in range(nodes.shape[0])])
 
@@ -293,21 +307,13 @@ class CraterField:
         # (compiled: `terrain_kernels`)
         from pipeline.core.body import terrain_kernels  # lazy: the compiler where tiles are made
 
-        bc, br = _caps(np.concatenate([nodes, nodes[:1]])[blocks])
         depth, rim, floor = (a[rows] for a in self._shape)
         tau = (np.full(rows.size, -1.0) if self.degradation is None
                else self.degradation[rows])
         out[:-1] = terrain_kernels.stamp(
-            nodes, blocks, bc, br, self.u[rows], self.diam_m[rows] / 2.0 / self.radius_m,
+            nodes, blocks, self.u[rows], self.diam_m[rows] / 2.0 / self.radius_m,
             depth, rim, floor, tau, self.extent, self._tables(), crater_shape.MAX_DEGRADATION)
         return out[:-1]
-
-
-def _caps(nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit centres (B, 3) and angular radii (B,) rad of groups of unit vectors (B, k, 3)."""
-    c = nodes.mean(axis=1)
-    c /= np.linalg.norm(c, axis=1, keepdims=True)
-    return c, np.arccos(np.clip(np.einsum("bkj,bj->bk", nodes, c).min(axis=1), -1, 1))
 
 
 def node_blocks(side: int, block: int = 4) -> np.ndarray:

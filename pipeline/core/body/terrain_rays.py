@@ -6,14 +6,16 @@ ray's angle from the local downward vertical), so the step f / L cannot cross th
 tracing: Hart, J. C. 1996, "Sphere tracing: a geometric method for the antialiased ray tracing of
 implicit surfaces", The Visual Computer 12, 527-545, here for a height field). A step is never
 shorter than a cell of the level read (a ray grazing the ground would crawl at f / L): what it
-can step over is a sliver thinner than the terrain's own resolution. Far from the
-surface the march reads a coarse level (resolution ~ f / 20) and lowers f by that level's bound
-of the finer terrain above it (`_margin`): an upper bound of the height, so coarse steps are
-safe too. Within `switch` (resolution-scaled) of the surface, Newton steps on the query's level
+can step over is a sliver thinner than the terrain's own resolution. Far from the surface the
+march reads a coarse level (resolution ~ f / 20) and lowers f by that level's bound of the finer
+terrain above it (`_Generator.margin_m`): an upper bound of the height, so coarse steps are safe
+too. Within `switch` (resolution-scaled) of the surface, Newton steps on the query's level
 (df/dt = d.u - R / |p| d.grad h) take over, kept inside the bracket [last point above, first
 point below] with bisection as the fallback. The march starts where the ray enters the sphere of
 the terrain's highest possible point (or at the origin inside it) and gives up where it leaves it.
-Vectorised over rays; converged rays leave the working set (compaction).
+Compiled per ray (`terrain_kernels.march_rays`): a ray that reaches a tile not yet made stops
+there; the tiles the stopped rays need are made together and they go on (a ray's answer is the
+same whatever the cache held).
 """
 
 from __future__ import annotations
@@ -46,71 +48,30 @@ def march(surf, o: np.ndarray, d: np.ndarray, res: np.ndarray,
     idx = np.flatnonzero((inside | ((disc >= 0) & (t_enter >= 0))) & (t_enter <= t_leave))
     t = t_enter[idx]
     t_lo = t.copy()
-    t_hi = np.full(idx.size, np.inf)
-    seen_above = np.zeros(idx.size, bool)
     height0 = np.sqrt(oo[idx]) - r_ref - lo_m  # above the lowest possible point
     rk = np.maximum(res[idx], _COARSE * np.maximum(height0, 0.0))
-    slope = np.tan(np.radians(opts.ray_max_slope_deg))
-    tol = opts.ray_tolerance_m
-    prev_f = np.full(idx.size, np.inf)
-    for _ in range(opts.ray_max_steps):
-        if not idx.size:
-            break
-        oi, di, ri = o[idx], d[idx], res[idx]
-        p = oi + t[:, None] * di
-        fine = rk <= ri * (1.0 + 1e-9)
-        switch = np.maximum(_SWITCH_CELLS * ri, 0.5)
-        # value and gradient in one evaluation where a Newton step is due
-        want = fine & (np.isfinite(t_hi) | (prev_f < 4.0 * switch))
-        f = np.empty(idx.size)
-        rn = np.empty(idx.size)
-        g = np.zeros((idx.size, 3))
-        for sel, deriv in ((want, True), (~want, False)):
-            if sel.any():
-                f[sel], g_sel, rn[sel] = surf._f(p[sel], rk[sel], deriv)
-                if g_sel is not None:
-                    g[sel] = g_sel
-        fs = np.where(fine, f, f - surf._margin(rk))
-        done = fine & ((np.abs(f) <= tol) | ((f < 0) & ~seen_above))
-        out[idx[done]] = t[done]
-        # coarse and too close for its bound: look again at the query's level
-        refine = ~fine & (fs <= 0)
-        above = fine & (f > 0)
-        below = fine & (f < 0)
-        t_lo = np.where(above, t, t_lo)
-        seen_above |= above | (~fine & (fs > 0))
-        t_hi = np.where(below, np.minimum(t_hi, t), t_hi)
-        bracketed = np.isfinite(t_hi)
-        u = p / rn[:, None]
-        cos_e = -np.einsum("ni,ni->n", di, u)
-        step_l = np.maximum(cos_e + slope * np.sqrt(np.maximum(1.0 - cos_e * cos_e, 0.0)), 0.05)
-        # at least a cell of the level read: a grazing ray's bound alone (f / L, f ~ metres)
-        # would crawl; a crossing within the step brackets the root for bisection and Newton
-        step = np.maximum(np.maximum(fs, 0.0) / step_l, _MIN_STEP_CELLS * rk)
-        t_new = np.where(refine, t, t + step)
-        t_new = np.where(fine & bracketed, 0.5 * (t_lo + t_hi), t_new)
-        newton = want & ~done & (bracketed | (f < switch))
-        if newton.any():
-            k = np.flatnonzero(newton)
-            dfdt = -cos_e[k] - (r_ref / rn[k]) * np.einsum("ni,ni->n", di[k], g[k])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                tn = t[k] - f[k] / dfdt
-            # unbracketed, a Newton step extrapolates the local slope: within a few cells only
-            # (a ray along rising ground would leap past the rise ahead)
-            reach = np.where(bracketed[k], np.inf, _NEWTON_REACH_CELLS * ri[k])
-            ok = ((tn > t_lo[k]) & (tn < t_hi[k]) & (tn - t[k] <= reach) & np.isfinite(tn)
-                  & (dfdt < 0))
-            t_new[k] = np.where(ok, tn, t_new[k])
-        # the height expected after the step over level ground: the next level, and whether the
-        # next evaluation should bring the gradient for a Newton step
-        f_next = f - np.maximum(cos_e, 0.0) * np.maximum(fs, 0.0) / step_l
-        prev_f = np.where(fine, np.abs(f), np.where(refine, np.inf, f_next))
-        rk = np.where(refine | fine, ri, np.maximum(ri, _COARSE * np.maximum(f_next, 0.0)))
-        gone = ~bracketed & (t_new > t_leave[idx])
-        keep = ~done & ~gone
-        idx, t, t_lo, t_hi = idx[keep], t_new[keep], t_lo[keep], t_hi[keep]
-        seen_above, rk, prev_f = seen_above[keep], rk[keep], prev_f[keep]
-    if idx.size:  # out of steps: a bracketed ray keeps its estimate
-        ok = np.isfinite(t_hi)
-        out[idx[ok]] = t[ok]
+    n = idx.size
+    o, d, res, t_leave = (np.ascontiguousarray(a[idx]) for a in (o, d, res, t_leave))
+    t_hi = np.full(n, np.inf)
+    seen_above = np.zeros(n, bool)
+    prev_f = np.full(n, np.inf)
+    steps = np.zeros(n, np.int64)
+    hit = np.full(n, np.nan)
+    need = np.full(n, -1, np.int64)
+    cells, truth_from_map, bias_m, min_res, face_side_m, max_order, margins = surf._reader()
+    from pipeline.core.body import terrain_kernels  # lazy: the compiler where rays are cast
+
+    rays = np.arange(n)
+    while rays.size:
+        flat, keys, slots, stamp, tick = surf.cache.lookup()
+        terrain_kernels.march_rays(
+            rays, o, d, res, t_leave, t, t_lo, t_hi, seen_above, rk, prev_f, steps, hit, need,
+            flat, keys, slots, stamp, tick, cells, truth_from_map, bias_m, min_res, face_side_m,
+            max_order, margins, r_ref, _COARSE, _SWITCH_CELLS, _NEWTON_REACH_CELLS,
+            _MIN_STEP_CELLS, np.tan(np.radians(opts.ray_max_slope_deg)), opts.ray_tolerance_m,
+            opts.ray_max_steps)
+        rays = rays[need[rays] >= 0]
+        if rays.size:  # the tiles the stalled rays read next, made together
+            surf.cache.slots(np.unique(need[rays]))
+    out[idx] = hit
     return out

@@ -98,14 +98,11 @@ def nested_pixel(key: int) -> tuple[int, int]:
 def _lattice(keys: np.ndarray | int, c: np.ndarray) -> np.ndarray:
     """Unit vectors (T, J, J, 3) (or (J, J, 3) for one int key) of tiles at the face
     coordinates (i + c) / 2^order of their cell (i, j), c (J,) in cells of the tile's side."""
+    from pipeline.core.body import terrain_kernels  # lazy: the compiler where tiles are made
+
     k = np.atleast_1d(np.asarray(keys, dtype=np.int64))
-    order, face = k >> 56, (k >> 52) & 15
-    ix, iy = (k >> 26) & ((1 << 26) - 1), k & ((1 << 26) - 1)
-    scale = 1.0 / np.left_shift(1, order).astype(float)
-    xx = ((ix[:, None] + c[None, :]) * scale[:, None])[:, None, :]
-    yy = ((iy[:, None] + c[None, :]) * scale[:, None])[:, :, None]
-    xx, yy = np.broadcast_arrays(xx, yy)
-    out = xyf2vec(xx, yy, np.broadcast_to(face[:, None, None], xx.shape))
+    out = terrain_kernels.lattice(k >> 56, (k >> 52) & 15, (k >> 26) & ((1 << 26) - 1),
+                                  k & ((1 << 26) - 1), np.asarray(c, dtype=float), _JRLL, _JPLL)
     return out[0] if np.ndim(keys) == 0 else out
 
 
@@ -193,6 +190,12 @@ class TileCache:
         """The slab as one flat array (slot s, row r, column c at (s * side + r) * side + c)."""
         return self._slab.reshape(-1)
 
+    def lookup(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+        """For a compiled reader: the flat slab, the held keys (sorted) and their slots, the
+        slots' LRU stamps (a reader stamps what it reads) and the current tick; valid until the
+        next `slots` call."""
+        return self.flat, self._sorted_keys, self._sorted_slots, self._stamp, self._tick
+
     def _find(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pos = np.searchsorted(self._sorted_keys, keys)
         pos = np.minimum(pos, max(self._sorted_keys.size - 1, 0))
@@ -218,7 +221,8 @@ class TileCache:
         if free.size < keys.size and self._slab.shape[0] < self.capacity:
             self._grow(self.resident + keys.size)
             free = np.flatnonzero(self._key_of_slot < 0)
-        if free.size < keys.size:
+        evicted = free.size < keys.size
+        if evicted:
             # the tiles this call found are protected: they are read after this
             protect = self._stamp == self._tick
             old = np.flatnonzero((self._key_of_slot >= 0) & ~protect)
@@ -235,10 +239,15 @@ class TileCache:
         self.made += keys.size
         self._key_of_slot[use] = keys
         self._stamp[use] = self._tick
-        held = np.flatnonzero(self._key_of_slot >= 0)
-        order = np.argsort(self._key_of_slot[held])
-        self._sorted_keys = self._key_of_slot[held][order]
-        self._sorted_slots = held[order]
+        if evicted:
+            held = np.flatnonzero(self._key_of_slot >= 0)
+            order = np.argsort(self._key_of_slot[held])
+            self._sorted_keys = self._key_of_slot[held][order]
+            self._sorted_slots = held[order]
+        else:  # new keys (unique, absent) into the sorted ones
+            at = np.searchsorted(self._sorted_keys, keys)
+            self._sorted_keys = np.insert(self._sorted_keys, at, keys)
+            self._sorted_slots = np.insert(self._sorted_slots, at, use)
 
     def _grow(self, need: int) -> None:
         size = min(self.capacity, max(2 * self._slab.shape[0], need))
