@@ -281,3 +281,19 @@ def test_a_ray_meets_the_terrain_where_it_does_whatever_the_cache_held():
     assert small.cache.made > small.cache.capacity
     assert np.array_equal(together, one_by_one)
     assert np.array_equal(together, small.intersect(o, d, res))
+
+
+@pytest.mark.parametrize("face", range(12))
+def test_a_tiles_ring_continues_its_face_at_every_edge_and_corner(face: int):
+    # the stencil ring outside a base face continues the projection: neighbouring nodes stay
+    # about a cell apart on the edges and corners of every face (a polar face's edge ring was
+    # turned by 2 pi / nr there: its nodes landed degrees away, heights read from elsewhere)
+    order, cells = 5, 32
+    n = 1 << order
+    cell = float(tiles.spacing_m(order, cells, 1.0))
+    for ix, iy in ((0, 7), (n - 1, 7), (7, 0), (7, n - 1), (0, 0), (n - 1, n - 1), (0, n - 1),
+                   (n - 1, 0)):
+        nodes = tiles.tile_nodes(int(tiles.tile_key(order, face, ix, iy)), cells)
+        steps = np.concatenate([np.linalg.norm(np.diff(nodes, axis=a), axis=-1).ravel()
+                                for a in (0, 1)])
+        assert steps.max() < 2.0 * cell, (face, ix, iy, steps.max() / cell)

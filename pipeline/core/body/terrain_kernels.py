@@ -262,7 +262,10 @@ def _vec_into(x: float, y: float, f: int, jrll: np.ndarray, jpll: np.ndarray, ou
         nr = 1.0
         z = (2.0 - jr) * 2.0 / 3.0
         sth = np.sqrt(max((1.0 - z) * (1.0 + z), 0.0))
-    phi_t = (jpll[f] * nr + x - y) % 8.0
+    phi_t = jpll[f] * nr + x - y
+    if 0.0 <= x <= 1.0 and 0.0 <= y <= 1.0:
+        phi_t %= 8.0  # HEALPix's wrap; outside the face (a tile's ring) the formula continues:
+        # wrapped there, a polar face's edge node (nr < 1) turned by 2 pi / nr, not 2 pi
     phi = 0.25 * np.pi * phi_t / nr if abs(nr) > 1e-15 else 0.0
     out[0] = sth * np.cos(phi)
     out[1] = sth * np.sin(phi)
