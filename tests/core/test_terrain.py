@@ -297,3 +297,33 @@ def test_a_tiles_ring_continues_its_face_at_every_edge_and_corner(face: int):
         steps = np.concatenate([np.linalg.norm(np.diff(nodes, axis=a), axis=-1).ravel()
                                 for a in (0, 1)])
         assert steps.max() < 2.0 * cell, (face, ix, iy, steps.max() / cell)
+
+
+def test_a_tiles_crater_candidates_from_its_ancestor_are_those_a_direct_query_finds():
+    # 3,000 craters of 20 m - 50 km around (lat 0, lon 0) and the pole; tiles at every level
+    # from 0 to 14, at the point and across the polar faces' edges
+    rng = np.random.default_rng(6)
+    n = 3000
+    centres = np.concatenate([np.array([1.0, 0.0, 0.0]) + rng.normal(0, 0.02, (n // 2, 3)),
+                              np.array([0.0, 0.0, -1.0]) + rng.normal(0, 0.02, (n // 2, 3))])
+    diam = np.exp(rng.uniform(np.log(20.0), np.log(50e3), n))
+    terrain = Terrain.build(FLAT, R * centres / np.linalg.norm(centres, axis=1)[:, None], diam)
+    gen = terrain._gen
+    probes = np.array([[1.0, 0.0, 0.0], [0.0, 0.02, -1.0], [0.03, 0.0, -1.0]])
+    probes /= np.linalg.norm(probes, axis=1)[:, None]
+    checked = 0
+    for order in range(15):
+        x, y, face = tiles.vec2xyf(probes + rng.normal(0, 1e-5, probes.shape))
+        k = 1 << order
+        keys = tiles.tile_key(order, face, np.minimum(np.floor(x * k), k - 1),
+                              np.minimum(np.floor(y * k), k - 1))
+        nodes = tiles.tile_nodes(keys, FLAT.tile_cells).reshape(keys.size, -1, 3)
+        c = nodes.mean(axis=1)
+        c /= np.linalg.norm(c, axis=1)[:, None]
+        r = np.arccos(np.clip(np.einsum("tmi,ti->tm", nodes, c), -1, 1)).max(axis=1)
+        min_d = FLAT.min_crater_cells * float(gen.spacing_m(order))
+        direct = gen.craters.near(c, r, np.full(keys.size, min_d))
+        for got, want in zip(gen._near(keys, order, min_d, c, r), direct, strict=True):
+            assert np.array_equal(got, want)
+            checked += want.size
+    assert checked > 1000

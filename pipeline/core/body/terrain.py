@@ -213,7 +213,7 @@ class _Generator:
             h += v if w is None else w @ v @ w.T
         min_diam_m = self.opts.min_crater_cells * delta
         h += self.craters.relief_many_m(
-            nodes.reshape(keys.size, -1, 3), self.blocks, min_diam_m,
+            nodes.reshape(keys.size, -1, 3), self.blocks,
             lambda c, r: self._near(keys, order, min_diam_m, c, r)).reshape(h.shape)
         return h
 

@@ -279,21 +279,16 @@ class CraterField:
                                      crater_shape.MAX_DEGRADATION)
         return out + np.bincount(pt, h, minlength=out.size)
 
-    def relief_many_m(self, nodes: np.ndarray, blocks: np.ndarray, min_diam_m: float,
-                      near: Callable[[np.ndarray, np.ndarray], list[np.ndarray]] | None = None
-                      ) -> np.ndarray:
-        """`relief_m` of several node sets (T, M, 3) at once, each from the craters at least
-        min_diam_m across: their candidates by `near(centres (T, 3), radii (T,))` (default
-        one `near` query for all)."""
+    def relief_many_m(self, nodes: np.ndarray, blocks: np.ndarray,
+                      near: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]) -> np.ndarray:
+        """`relief_m` of several node sets (T, M, 3) at once, the candidates of each by
+        `near(centres (T, 3), radii (T,) rad)` (`near`'s rows for the sets' caps)."""
+        if not self.diam_m.size:
+            return np.zeros(nodes.shape[:2])
         centre = nodes.mean(axis=1)
         centre /= np.linalg.norm(centre, axis=1, keepdims=True)
         rad = np.arccos(np.clip(np.einsum("tmi,ti->tm", nodes, centre), -1, 1)).max(axis=1)
-        if not self.diam_m.size:
-            rows = [np.empty(0, np.int64)] * nodes.shape[0]
-        elif near is not None:
-            rows = near(centre, rad)
-        else:
-            rows = self.near(centre, rad, np.full(nodes.shape[0], min_diam_m))
+        rows = near(centre, rad)
         return np.stack([self.relief_m(nodes[i], blocks, rows[i])
                          for i in range(nodes.shape[0])])
 
