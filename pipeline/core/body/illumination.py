@@ -222,7 +222,8 @@ def in_terrain_shadow(surface: Surface, c_mcmf_m: np.ndarray, diam_m: np.ndarray
     `SHADOW_MIN_RESOLUTION_M`) for its first `SHADOW_RANGE_CELLS` resolutions, then in segments
     each 4x coarser and 4x longer: a caster s away must stand s tan(elevation) above the crater,
     and the terrain's detail below s / 50 changes that by a small share of it (at a Sun above
-    ~2 deg). Never on the sphere."""
+    ~2 deg); a ray above the terrain's highest possible point and rising is done. Never on the
+    sphere."""
     c = np.asarray(c_mcmf_m, dtype=float).reshape(-1, 3)
     d = np.asarray(diam_m, dtype=float).reshape(-1)
     hit = np.zeros(len(c), bool)
@@ -234,14 +235,19 @@ def in_terrain_shadow(surface: Surface, c_mcmf_m: np.ndarray, diam_m: np.ndarray
     to_sun /= np.linalg.norm(to_sun, axis=1, keepdims=True)
     res = np.maximum(0.25 * d, SHADOW_MIN_RESOLUTION_M)
     start = np.zeros(len(c))
+    top_m = surface.reference_radius_m + surface.max_height_m
+    open_ = np.ones(len(c), bool)  # not yet hit, nor gone: above all terrain and rising
     for k in range(SHADOW_SEGMENTS + 1):
         length = SHADOW_RANGE_CELLS * res if k < SHADOW_SEGMENTS else np.full(len(c), np.inf)
-        sel = np.flatnonzero(~hit)
+        o = origin + start[:, None] * to_sun
+        open_ &= ~((np.einsum("ni,ni->n", o, o) > top_m * top_m)
+                   & (np.einsum("ni,ni->n", o, to_sun) >= 0.0))
+        sel = np.flatnonzero(open_)
         if not sel.size:
             break
-        o = origin[sel] + start[sel, None] * to_sun[sel]
-        hit[sel] = np.isfinite(surface.intersect(o, to_sun[sel], res[sel],
+        hit[sel] = np.isfinite(surface.intersect(o[sel], to_sun[sel], res[sel],
                                                  max_range_m=length[sel]))
+        open_ &= ~hit
         start, res = start + length, res * 4.0
     return hit
 

@@ -74,15 +74,25 @@ class FractalNoise:
                  max_wavelength_m: float = np.inf) -> np.ndarray:
         """Height (m) at positions p_m (N, 3) from the octaves with wavelengths in
         [min_wavelength_m, max_wavelength_m) (0, inf: all)."""
-        from pipeline.core.body import terrain_kernels  # lazy: the compiler where it is used
+        return self.band_height_m(p_m, self.band(min_wavelength_m, max_wavelength_m))
 
-        p = np.ascontiguousarray(np.asarray(p_m, dtype=float).reshape(-1, 3))
+    def band(self, min_wavelength_m: float, max_wavelength_m: float = np.inf
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The octaves in [min_wavelength_m, max_wavelength_m) of nonzero amplitude as the
+        compiled sum takes them: rotations over wavelengths, offsets, keys, amplitudes."""
         lam = self.wavelength_m
         use = np.flatnonzero((lam >= min_wavelength_m) & (lam < max_wavelength_m)
                              & (self.amplitude_m != 0))
-        return terrain_kernels.fbm(p, self.rotation[use] / lam[use, None, None],
-                                   self.offset[use], self.key[use], self.amplitude_m[use],
-                                   _HASH_PRIMES, _HASH_MIX, _GRAD)
+        return (self.rotation[use] / lam[use, None, None], self.offset[use], self.key[use],
+                self.amplitude_m[use])
+
+    def band_height_m(self, p_m: np.ndarray,
+                      band: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+        """Height (m) at positions p_m (N, 3) from a `band` of octaves."""
+        from pipeline.core.body import terrain_kernels  # lazy: the compiler where it is used
+
+        p = np.ascontiguousarray(np.asarray(p_m, dtype=float).reshape(-1, 3))
+        return terrain_kernels.fbm(p, *band, _HASH_PRIMES, _HASH_MIX, _GRAD)
 
     def residual_bound_m(self, min_wavelength_m: float) -> float:
         """An upper bound (m) of |height| from the octaves shorter than min_wavelength_m (the

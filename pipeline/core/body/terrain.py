@@ -137,6 +137,7 @@ class _Generator:
                                              opts.radius_m, 0, tiles.MAX_ORDER))
         self._margins = self._margin_table()
         self._ancestors: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+        self._plans: dict[int, list[tuple[int, tuple | None, bool]]] = {}
 
     def spacing_m(self, order: np.ndarray | int) -> np.ndarray:
         return tiles.spacing_m(order, self.opts.tile_cells, self.opts.radius_m)
@@ -191,27 +192,38 @@ class _Generator:
                 out[g] = self._make_level(keys[g], int(o))
         return out
 
-    def _make_level(self, keys: np.ndarray, order: int) -> np.ndarray:
-        n = self.opts.tile_cells
+    def _plan(self, order: int) -> list[tuple[int, tuple | None, bool]]:
+        """A level's lattices (kept): each stride with its roughness octaves (a `band`, or
+        None) and whether the base is read on it."""
+        if order in self._plans:
+            return self._plans[order]
         delta = float(self.spacing_m(order))
-        nodes = tiles.tile_nodes(keys, n)  # (G, n + 3, n + 3, 3)
         lam = self.noise.wavelength_m
         octaves: dict[int, list[float]] = {}  # stride -> the wavelengths sampled at it
         for lam_k in lam[lam >= self.opts.roughness_min_cells * delta]:
             octaves.setdefault(self._stride(lam_k, delta, 4.0), []).append(float(lam_k))
         kb = self._stride(self.base.smooth_m, delta, 8.0) if self.base is not None else -1
+        plan = [(k, self.noise.band(min(octaves[k]), 2.0 * max(octaves[k]))
+                 if k in octaves else None, k == kb)
+                for k in sorted(set(octaves) | ({kb} - {-1}))]
+        self._plans[order] = plan
+        return plan
+
+    def _make_level(self, keys: np.ndarray, order: int) -> np.ndarray:
+        n = self.opts.tile_cells
+        nodes = tiles.tile_nodes(keys, n)  # (G, n + 3, n + 3, 3)
         h = np.zeros(nodes.shape[:3])
-        for k in sorted(set(octaves) | ({kb} - {-1})):
+        for k, band, base in self._plan(order):
             pts = nodes if k == 1 else tiles.sub_lattice(keys, n, k)
             v = np.zeros(pts.shape[:3])
-            if k in octaves:
-                v += self.noise.height_m(pts.reshape(-1, 3) * self.opts.radius_m,
-                                         min(octaves[k]), 2.0 * max(octaves[k])).reshape(v.shape)
-            if k == kb and self.base is not None:
+            if band is not None:
+                v += self.noise.band_height_m(pts.reshape(-1, 3) * self.opts.radius_m,
+                                              band).reshape(v.shape)
+            if base and self.base is not None:
                 v += self.base.height_m(pts)
             w = tiles.upsample_matrix(n, k) if k > 1 else None
             h += v if w is None else w @ v @ w.T
-        min_diam_m = self.opts.min_crater_cells * delta
+        min_diam_m = self.opts.min_crater_cells * float(self.spacing_m(order))
         h += self.craters.relief_many_m(
             nodes.reshape(keys.size, -1, 3), self.blocks,
             lambda c, r: self._near(keys, order, min_diam_m, c, r)).reshape(h.shape)
