@@ -236,18 +236,18 @@ def in_terrain_shadow(surface: Surface, c_mcmf_m: np.ndarray, diam_m: np.ndarray
     res = np.maximum(0.25 * d, SHADOW_MIN_RESOLUTION_M)
     start = np.zeros(len(c))
     top_m = surface.reference_radius_m + surface.max_height_m
-    open_ = np.ones(len(c), bool)  # not yet hit, nor gone: above all terrain and rising
+    live = np.ones(len(c), bool)  # not yet hit, nor gone: above all terrain and rising
     for k in range(SHADOW_SEGMENTS + 1):
         length = SHADOW_RANGE_CELLS * res if k < SHADOW_SEGMENTS else np.full(len(c), np.inf)
         o = origin + start[:, None] * to_sun
-        open_ &= ~((np.einsum("ni,ni->n", o, o) > top_m * top_m)
+        live &= ~((np.einsum("ni,ni->n", o, o) > top_m * top_m)
                    & (np.einsum("ni,ni->n", o, to_sun) >= 0.0))
-        sel = np.flatnonzero(open_)
+        sel = np.flatnonzero(live)
         if not sel.size:
             break
         hit[sel] = np.isfinite(surface.intersect(o[sel], to_sun[sel], res[sel],
                                                  max_range_m=length[sel]))
-        open_ &= ~hit
+        live &= ~hit
         start, res = start + length, res * 4.0
     return hit
 

@@ -235,8 +235,8 @@ class _Generator:
         level, from the candidates of their ancestor `_ANCESTOR_UP` levels up (queried once
         per ancestor and kept, LRU): the same rows, without a k-d query per tile."""
         up = min(_ANCESTOR_UP, order)
-        anc = tiles.tile_key(order - up, (keys >> 52) & 15, ((keys >> 26) & ((1 << 26) - 1)) >> up,
-                             (keys & ((1 << 26) - 1)) >> up)
+        _, face, ix, iy = tiles.key_parts(keys)
+        anc = tiles.tile_key(order - up, face, ix >> up, iy >> up)
         new = np.array([a for a in np.unique(anc).tolist() if (a, order) not in self._ancestors],
                        dtype=np.int64)
         if new.size:

@@ -295,9 +295,8 @@ class CraterField:
     def relief_m(self, nodes: np.ndarray, blocks: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """Summed crater heights (m) at unit vectors `nodes` (M, 3), grouped in `blocks`
         (B, k) of node indices (M: padding), of the candidate craters `rows` (`near`)."""
-        out = np.zeros(nodes.shape[0] + 1)
         if not self.diam_m.size or not rows.size:
-            return out[:-1]
+            return np.zeros(nodes.shape[0])
         # a small crater's footprint meets one or two blocks: only their nodes are evaluated
         # (compiled: `terrain_kernels`)
         from pipeline.core.body import terrain_kernels  # lazy: the compiler where tiles are made
@@ -305,10 +304,9 @@ class CraterField:
         depth, rim, floor = (a[rows] for a in self._shape)
         tau = (np.full(rows.size, -1.0) if self.degradation is None
                else self.degradation[rows])
-        out[:-1] = terrain_kernels.stamp(
+        return terrain_kernels.stamp(
             nodes, blocks, self.u[rows], self.diam_m[rows] / 2.0 / self.radius_m,
             depth, rim, floor, tau, self.extent, self._tables(), crater_shape.MAX_DEGRADATION)
-        return out[:-1]
 
 
 def node_blocks(side: int, block: int = 4) -> np.ndarray:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -81,8 +82,8 @@ def tile_key(order: np.ndarray | int, face: np.ndarray | int, ix: np.ndarray | f
             | (np.asarray(ix, np.int64) << 26) | np.asarray(iy, np.int64))
 
 
-def key_parts(key: int) -> tuple[int, int, int, int]:
-    """(order, face, ix, iy) of a tile key."""
+def key_parts(key: Any) -> tuple[Any, Any, Any, Any]:
+    """(order, face, ix, iy) of a tile key (int) or of each of an int64 array of keys."""
     return key >> 56, (key >> 52) & 15, (key >> 26) & ((1 << 26) - 1), key & ((1 << 26) - 1)
 
 
@@ -101,8 +102,7 @@ def _lattice(keys: np.ndarray | int, c: np.ndarray) -> np.ndarray:
     from pipeline.core.body import terrain_kernels  # lazy: the compiler where tiles are made
 
     k = np.atleast_1d(np.asarray(keys, dtype=np.int64))
-    out = terrain_kernels.lattice(k >> 56, (k >> 52) & 15, (k >> 26) & ((1 << 26) - 1),
-                                  k & ((1 << 26) - 1), np.asarray(c, dtype=float), _JRLL, _JPLL)
+    out = terrain_kernels.lattice(*key_parts(k), np.asarray(c, dtype=float), _JRLL, _JPLL)
     return out[0] if np.ndim(keys) == 0 else out
 
 
