@@ -89,7 +89,7 @@ def _speed(results: list, result) -> None:
     scene = render_scene(scene_rng(5, 0), SceneOptions(size_px=1024, gsd_m=(20.0, 20.0)))
     det = make_detector("learned", threads=2)
     for sun, how in ((scene.sun_dir_image, "the Sun given (the render stage)"),
-                     (None, "the Sun unknown (two turns tried)")):
+                     (None, "the Sun unknown (turns screened on the centre)")):
         det.detect(scene.image, sun)
         times = []
         for _ in range(10):

@@ -166,3 +166,62 @@ def test_the_turn_with_more_sure_rims_beats_one_with_many_doubtful_ones() -> Non
     assert wrong.sum() > right.sum()
     assert learned._lit_score(right) > learned._lit_score(wrong)
     assert learned._lit_score(np.array([0.8, 0.5])) > learned._lit_score(np.array([0.8, 0.46]))
+
+
+class _Counting(_LitFromPlusU):
+    """The stand-in, keeping the shape of every image it is run on."""
+
+    def __init__(self) -> None:
+        self.shapes: list[tuple[int, int]] = []
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        self.shapes.append(x.shape[2:])
+        return super().__call__(x)
+
+
+def _bowls(sun: np.ndarray, size: int, keep) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """A size x size px image of 8 x 8 px bowls lit from `sun` in the blocks (i, j) that
+    `keep(i, j)` accepts, and their centres (u, v) px."""
+    rng = np.random.default_rng(4)
+    img = 100.0 + rng.normal(0.0, 0.3, (size, size))
+    yy, xx = np.mgrid[0:8, 0:8] + 0.5
+    shade = -20.0 * ((xx - 4) * sun[0] + (yy - 4) * sun[1]) * (np.hypot(xx - 4, yy - 4) < 3.5)
+    centres = []
+    for i in range(1, size // 8 - 1, 3):
+        for j in range(1, size // 8 - 1, 4):
+            if keep(i, j):
+                img[8 * i:8 * i + 8, 8 * j:8 * j + 8] += shade
+                centres.append((8 * j + 4, 8 * i + 4))
+    return img, centres
+
+
+@pytest.mark.parametrize("azimuth_deg", [0.0, 90.0, 180.0, 270.0])
+def test_a_clear_screen_runs_one_turn_on_the_whole_image(azimuth_deg) -> None:
+    """Bowls everywhere: the central square (320 of 640 px) shows one turn far ahead, so the
+    whole image runs at that turn only, and finds what it finds with the Sun given."""
+    a = np.radians(azimuth_deg)
+    sun = np.array([np.cos(a), np.sin(a)])
+    img, centres = _bowls(sun, 640, lambda i, j: True)
+    net = _Counting()
+    detector = learned.LearnedDetector(net, learned.LearnedOptions(
+        refine=False, min_diameter_px=4.0))
+    out = detector.detect(img)
+    assert net.shapes.count((640, 640)) == 1
+    assert net.shapes.count((320, 320)) >= 2  # the candidates, screened
+    given = detector.detect(img, sun)
+    np.testing.assert_array_equal(out.centre_px, given.centre_px)
+    assert len(given.centre_px) >= len(centres)
+
+
+def test_an_undecided_screen_runs_every_candidate_on_the_whole_image() -> None:
+    """No bowl in the central square: the screen is a tie (0 and 0), so every candidate turn
+    runs on the whole image, and the right one still wins there."""
+    img, centres = _bowls(np.array([0.0, 1.0]), 640,
+                          lambda i, j: not (16 <= i < 64 and 16 <= j < 64))
+    net = _Counting()
+    out = learned.LearnedDetector(net, learned.LearnedOptions(
+        refine=False, min_diameter_px=4.0)).detect(img)
+    screened = net.shapes.count((320, 320))
+    assert screened >= 2 and net.shapes.count((640, 640)) == screened
+    got = sorted(map(tuple, np.round(out.centre_px).astype(int).tolist()))
+    assert got == sorted(centres)

@@ -42,8 +42,39 @@ class SunEstimate:
 
 
 def _block_mean(img: np.ndarray, k: int) -> np.ndarray:
-    h, w = (img.shape[0] // k) * k, (img.shape[1] // k) * k
-    return img[:h, :w].reshape(h // k, k, w // k, k).mean(axis=(1, 3))
+    """Means of the image's k x k blocks (a partial last row or column of blocks dropped), as
+    float32 sums of the k^2 strided views (~5x faster than a mean over reshaped axes)."""
+    h, w = img.shape[0] // k, img.shape[1] // k
+    out = np.zeros((h, w), np.float32)
+    for i in range(k):
+        for j in range(k):
+            out += img[i:h * k:k, j:w * k:k]
+    return out / np.float32(k * k)
+
+
+def _background(img: np.ndarray, sigma_px: float) -> np.ndarray:
+    """The image (H, W) smoothed by a Gaussian of `sigma_px` (px, mirrored edges), computed on
+    block means of k = floor(sigma / 3) px and interpolated back (bilinear): the background is
+    smooth at that scale (within ~2 % of the contrast's robust sigma of the full-resolution
+    filter on white noise, the worst case), at a quarter of the cost for sigma 12 px."""
+    k = int(sigma_px // 3)
+    h, w = img.shape
+    if k < 2 or h < 4 * k or w < 4 * k:
+        return ndimage.gaussian_filter(img, sigma_px, mode="reflect")
+    coarse = ndimage.gaussian_filter(_block_mean(img, k), sigma_px / k, mode="reflect")
+    # block j's mean sits at pixel k j + (k - 1) / 2: interpolate the coarse grid from there
+    return _lerp_axis(_lerp_axis(coarse, h, k, 0), w, k, 1).astype(np.float32)
+
+
+def _lerp_axis(coarse: np.ndarray, n: int, k: int, axis: int) -> np.ndarray:
+    """`coarse` linearly interpolated along `axis` to n samples at pixel p = k j + (k - 1) / 2
+    of coarse sample j (held constant beyond the first and last)."""
+    x = np.clip((np.arange(n) - (k - 1) / 2) / k, 0, coarse.shape[axis] - 1)
+    j0 = np.minimum(x.astype(int), coarse.shape[axis] - 2)
+    f = (x - j0).astype(np.float32)
+    a, b = np.take(coarse, j0, axis=axis), np.take(coarse, j0 + 1, axis=axis)
+    f = f[:, None] if axis == 0 else f[None, :]
+    return a + f * (b - a)
 
 
 def light_axis(image: np.ndarray) -> np.ndarray:
@@ -53,7 +84,12 @@ def light_axis(image: np.ndarray) -> np.ndarray:
     estimate of Pentland 1982, "Finding the illuminant direction", JOSA 72(4)); each gradient's
     weight is capped at the 90th percentile of the magnitudes so that a few shadow edges do not
     decide alone."""
-    g = ndimage.gaussian_filter(np.asarray(image, dtype=np.float32), 1.0, mode="reflect")
+    return _light_axis_of_smoothed(
+        ndimage.gaussian_filter(np.asarray(image, dtype=np.float32), 1.0, mode="reflect"))
+
+
+def _light_axis_of_smoothed(g: np.ndarray) -> np.ndarray:
+    """`light_axis` of an image already smoothed by its Gaussian of 1 px."""
     gu, gv = ndimage.sobel(g, 1), ndimage.sobel(g, 0)
     mag = np.hypot(gu, gv)
     w = np.minimum(1.0, np.percentile(mag, 90) / np.maximum(mag, 1e-9))
@@ -82,11 +118,12 @@ def estimate_sun_direction(image: np.ndarray, max_shift_px: int = 24, work_px: i
     # the background from the image with its dark and bright outliers replaced by the median,
     # so that a shadow does not raise a bright halo around itself in the contrast
     tame = np.where(np.abs(g - med) > 2 * sigma, np.float32(med), g)
-    c = (g - ndimage.gaussian_filter(tame, background_sigma_px, mode="reflect")) / sigma
+    c = (g - _background(tame, background_sigma_px)) / sigma
     dark = np.maximum(-c - threshold, 0.0)
     bright = np.maximum(c - threshold, 0.0)
     m = max_shift_px
-    shape = (img.shape[0] + m, img.shape[1] + m)
+    shape = (fft.next_fast_len(img.shape[0] + m, real=True),
+             fft.next_fast_len(img.shape[1] + m, real=True))  # zero padded: no wrap within m
     fd = fft.rfft2(dark, shape)
     fb = fft.rfft2(bright, shape)
     xcorr = fft.irfft2(np.conj(fd) * fb, shape)  # X(d) = sum dark(x) bright(x + d), d mod shape
@@ -101,7 +138,7 @@ def estimate_sun_direction(image: np.ndarray, max_shift_px: int = 24, work_px: i
     norm = float(np.linalg.norm(vec))
     if total <= 0 or norm == 0:
         return SunEstimate(np.array([np.nan, np.nan]), float("nan"), 0.0, False)
-    axis = light_axis(img)
+    axis = _light_axis_of_smoothed(g)
     direction = axis if axis @ vec < 0 else -axis
     strength = norm / total
     return SunEstimate(direction, float(np.arctan2(direction[1], direction[0])), strength,

@@ -15,10 +15,16 @@ The detector turns the image the same way when the Sun's direction is given. Whe
 (an image a user brings), the light's axis is estimated from the image
 (`sun_direction.estimate_sun_direction`, on a copy of at most `AXIS_WORK_PX`: 4x faster than at
 1024 px, and the same pair of turns on 22 of 23 real and rendered images, the other found
-unreliable) and the network runs at the turn it gives and at the opposite one (both, since the
-sign is the estimate's weak part: a crater lit from the wrong side reads as a mound), at all
-four when the estimate is unreliable; the turn with the more confident rims (`_lit_score`) is
-kept. Detections are turned back to the image's axes.
+unreliable); the candidate turns are the one it gives and the opposite one (the sign is the
+estimate's weak part: a crater lit from the wrong side reads as a mound), all four when the
+estimate is unreliable. The turn with the more confident rims (`_lit_score`) is kept, and it is
+screened first on the image's central square of half its side (`_screened_turns`, a quarter of
+the pixels): when one turn's count of confident rims there leads the next by more than twice
+the counts' Poisson spread, only that turn runs on the whole image; otherwise every candidate
+does, as without the screen. On the 12 real NAC images (800 px) and 40 rendered 1024 px scenes
+the screen settled 44 of the 52 alone, each time on the whole image's winner (which led the other
+turn by 1.2-63x); the other 8 ran every candidate.
+Detections are turned back to the image's axes.
 
 Refinement (`refine`, when the Sun's image direction is known or estimated from the shading
 inside the decoded rims, `pipeline.core.vision.sun_direction.sun_from_rims`): the classical
@@ -45,6 +51,7 @@ from typing import ClassVar
 import numpy as np
 from scipy import ndimage
 
+from pipeline.core.vision.blur import gaussian_blur
 from pipeline.core.vision.detectors.base import Detections, suppress_duplicates
 from pipeline.core.vision.detectors.classical import refine_rims
 from pipeline.core.vision.sun_direction import estimate_sun_direction, sun_from_rims
@@ -52,6 +59,7 @@ from pipeline.core.vision.sun_direction import estimate_sun_direction, sun_from_
 STRIDE = 4
 MULTIPLE = 32  # the network's input sides must be multiples of this
 AXIS_WORK_PX = 512  # the light-axis estimate's working size: it only picks quarter turns
+SCREEN_MIN_PX = 256  # the smallest central square the turns are screened on (px)
 Network = Callable[[np.ndarray], np.ndarray]  # (1, 1, H, W) float32 -> (1, 4, H/4, W/4)
 
 
@@ -176,7 +184,7 @@ class LearnedDetector:
         else:
             est = estimate_sun_direction(img, work_px=AXIS_WORK_PX)
             k = canonical_turns(est.direction) if est.reliable else 0
-            turns = [k, (k + 2) % 4] if est.reliable else [0, 1, 2, 3]
+            turns = self._screened_turns(x, [k, (k + 2) % 4] if est.reliable else [0, 1, 2, 3])
         found = [self._decoded(x, k) for k in turns]
         best = max(range(len(turns)), key=lambda n: _lit_score(found[n][2]))
         centre, radius, conf = found[best]
@@ -190,6 +198,21 @@ class LearnedDetector:
         keep = suppress_duplicates(centre, radius)
         return Detections(centre[keep], radius[keep], radius[keep], np.zeros(keep.size),
                           conf[keep])
+
+    def _screened_turns(self, x: np.ndarray, turns: list[int]) -> list[int]:
+        """The candidate turns still to run on the whole normalised image x: the one whose
+        count of confident rims (`_lit_score`) in x's central square of half its side leads every
+        other's by more than 2 sqrt(sum of the two counts), else all of them (module docstring).
+        Images under 2 `SCREEN_MIN_PX` a side are not screened."""
+        side = min(x.shape) // 2 // MULTIPLE * MULTIPLE
+        if side < SCREEN_MIN_PX:
+            return turns
+        r0, c0 = (x.shape[0] - side) // 2, (x.shape[1] - side) // 2
+        centre = x[r0:r0 + side, c0:c0 + side]
+        counts = [_lit_score(self._decoded(centre, k)[2])[0] for k in turns]
+        order = sorted(range(len(turns)), key=lambda n: -counts[n])
+        lead, next_ = counts[order[0]], counts[order[1]]
+        return [turns[order[0]]] if lead - next_ > 2 * np.sqrt(lead + next_) else turns
 
     def _decoded(self, x: np.ndarray, turns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Centres (n, 2) px (in x's axes), radii (n,) px and confidences (n,), most confident
@@ -217,7 +240,7 @@ class LearnedDetector:
                 ) -> np.ndarray:
         """Centres (n, 2) px: the rim-edge fit's where it agrees with the network (module
         docstring), else the network's."""
-        g = ndimage.gaussian_filter(np.asarray(img, np.float32), 1.0, mode="nearest")
+        g = gaussian_blur(img, 1.0, mode="nearest")
         fit = refine_rims(g, centre, radius, sun / np.linalg.norm(sun), smooth_sigma_px=1.0,
                           psf_sigma_px=self.options.psf_sigma_px,
                           n_angles=self.options.refine_angles, threads=self.options.threads)
