@@ -388,7 +388,9 @@ def detect_image(
     labels: Annotated[Path | None, typer.Option(
         help="Crater labels: a CSV (ID,X,Y,W,H,C_X,CY) or YOLO text (class xc yc w h), or a "
              "folder of <image stem>.txt/.csv; prints recall and precision by size.")] = None,
-    min_diameter_px: Annotated[float, typer.Option(help="Smallest rim kept (px).")] = 10.0,
+    min_diameter_px: Annotated[float, typer.Option(
+        help="Smallest crater wanted (px): the learned detector keeps estimated diameters down "
+             "to 0.8 of it (its estimate of a small rim can fall that short).")] = 10.0,
     model: Annotated[Path | None, typer.Option(help="The learned detector's ONNX file.")] = None,
 ) -> None:
     """Craters in any image: rim ellipses with a confidence (detections.parquet: image,

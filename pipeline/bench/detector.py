@@ -43,6 +43,8 @@ def _rendered(results: list, result) -> None:
                    r.recall, "", 0.9, at_least=True),
             result(f"{tag}: precision ({r.n_detections} detections >= 10 px)", r.precision, "",
                    0.95, at_least=True),
+            result(f"{tag}: precision of every detection kept ({r.n_all}, any size; false: "
+                   "no true rim)", r.precision_all, ""),
             result(f"{tag}: median centre error", r.centre_error_px_median, "px", 0.5),
             result(f"{tag}: median diameter error (absolute)", r.diameter_error_pct_median, "%"),
         ]
@@ -79,7 +81,10 @@ def _real(results: list, result) -> None:
         results += [result(f"detector {name}, {len(images)} real NAC images pooled: recall",
                            r.recall, "", 0.8, at_least=True),
                     result(f"detector {name}, {len(images)} real NAC images pooled: precision",
-                           r.precision, "", 0.8, at_least=True)]
+                           r.precision, "", 0.8, at_least=True),
+                    result(f"detector {name}, {len(images)} real NAC images pooled: precision "
+                           "of every detection kept (any size) against every label",
+                           r.precision_all, "")]
 
 
 def _speed(results: list, result) -> None:

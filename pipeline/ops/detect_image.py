@@ -33,7 +33,7 @@ MAX_PIXELS = 400_000_000  # 20,000 x 20,000
 OVERLAY_MAX_PX = 4096  # overlays are scaled down to this long side
 # a float image is clipped to these percentiles of its pixels (%, each side): its outliers
 FLOAT_CLIP_PERCENT = 0.01
-SIZE_BINS_PX = (10.0, 20.0, 50.0, np.inf)
+SIZE_BINS_PX = (0.0, 10.0, 20.0, 50.0, np.inf)  # the first bin: what the targets leave out
 DETECTIONS_SCHEMA: dict[str, type[pl.DataType]] = {
     "image": pl.String, "centre_u_px": pl.Float64, "centre_v_px": pl.Float64,
     "semi_major_px": pl.Float64, "semi_minor_px": pl.Float64, "angle_rad": pl.Float64,
@@ -360,8 +360,10 @@ def _check_inputs(paths: list[Path], labels: Path | None) -> list[str]:
 
 def _score_lines(sc: Scores, head: str) -> list[str]:
     rec, prec = sc.line(10.0)
+    prec_all = sc.line(0.0)[1]
     out = [f"{head}: recall {rec:.3f}, precision {prec:.3f} (craters >= 10 px; centre within "
-           "0.25 D, diameter within 25 %)"]
+           f"0.25 D, diameter within 25 %); precision of every detection against every label "
+           f"{prec_all:.3f}"]
     for r in sc.table.iter_rows(named=True):
         label = f"{r['diam_lo_px']:g}+" if np.isinf(r["diam_hi_px"]) else \
             f"{r['diam_lo_px']:g}-{r['diam_hi_px']:g}"

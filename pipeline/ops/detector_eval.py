@@ -29,7 +29,8 @@ HELD_BACK_SEED = 777_000_001  # rendered test scenes: never a training seed
 @dataclass(frozen=True)
 class Rendered:
     """Scores on rendered scenes: recall, precision, median centre error (px) and absolute
-    diameter error (%), counts, and the median detection time (ms per image)."""
+    diameter error (%), counts, the median detection time (ms per image), and the precision
+    of every detection (any size) against every true rim (`precision_all`, of `n_all`)."""
 
     recall: float
     precision: float
@@ -38,6 +39,8 @@ class Rendered:
     n_counted: int
     n_detections: int
     detect_ms_median: float
+    precision_all: float
+    n_all: int
 
 
 def held_back_scenes(n: int, opts: SceneOptions | None = None, seed: int = HELD_BACK_SEED
@@ -48,7 +51,7 @@ def held_back_scenes(n: int, opts: SceneOptions | None = None, seed: int = HELD_
 
 def eval_rendered(detector: Detector, scenes: list[Scene], use_sun: bool = True) -> Rendered:
     """The detector on rendered scenes (module docstring); `use_sun` gives it the true Sun."""
-    found = counted_n = n_det = n_false = 0
+    found = counted_n = n_det = n_false = n_all = n_false_all = 0
     c_err: list[np.ndarray] = []
     d_err: list[np.ndarray] = []
     times = []
@@ -70,6 +73,8 @@ def eval_rendered(detector: Detector, scenes: list[Scene], use_sun: bool = True)
         matched_uncounted = (d2t >= 0) & ~counted[np.maximum(d2t, 0)]
         n_det += int(np.sum(big & ~matched_uncounted))
         n_false += int(np.sum(big & (d2t < 0)))
+        n_all += int(d2t.size)
+        n_false_all += int(np.sum(d2t < 0))
         counted_n += int(counted.sum())
         hit = counted & (t2d >= 0)
         found += int(hit.sum())
@@ -83,17 +88,19 @@ def eval_rendered(detector: Detector, scenes: list[Scene], use_sun: bool = True)
                     (n_det - n_false) / n_det if n_det else float("nan"),
                     float(np.median(ce)) if ce.size else float("nan"),
                     100 * float(np.median(de)) if de.size else float("nan"),
-                    counted_n, n_det, float(np.median(times)))
+                    counted_n, n_det, float(np.median(times)),
+                    (n_all - n_false_all) / n_all if n_all else float("nan"), n_all)
 
 
 @dataclass(frozen=True)
 class Real:
     """Scores on real images: per image (name, recall, precision, labels >= 10 px, detections
-    >= 10 px) and pooled."""
+    >= 10 px) and pooled; `precision_all`: every detection (any size) against every label."""
 
     per_image: list[tuple[str, float, float, int, int]]
     recall: float
     precision: float
+    precision_all: float
 
 
 def eval_real(detector_for: Callable[[str], Detector], images: list[tuple[str, np.ndarray]],
@@ -101,15 +108,20 @@ def eval_real(detector_for: Callable[[str], Detector], images: list[tuple[str, n
     """Each image (name, grey levels) scored against its labels (centres, diameters) with
     `detector_for(name)` (for leave-one-image-out: the fold that did not see that image), the
     Sun left to the detector."""
+    import polars as pl
+
     rows = []
     totals = np.zeros(4, int)
+    every = np.zeros(2, int)  # detections of any size, matched to a label of any size
     for (name, img), (lc, ld) in zip(images, labels, strict=True):
         det, _ = detect_image.detect_image(detector_for(name), img, None)
         sc = detect_image.score(det, lc, ld)
         rec, prec = sc.line(10.0)
-        t = sc.table
+        t = sc.table.filter(pl.col("diam_lo_px") >= 10.0)
         n = np.array([t["n_labels"].sum(), t["n_found"].sum(), t["n_detections"].sum(),
                       t["n_matched"].sum()], int)
         totals += n
+        every += [sc.table["n_detections"].sum(), sc.table["n_matched"].sum()]
         rows.append((name, rec, prec, int(n[0]), int(n[2])))
-    return Real(rows, totals[1] / max(totals[0], 1), totals[3] / max(totals[2], 1))
+    return Real(rows, totals[1] / max(totals[0], 1), totals[3] / max(totals[2], 1),
+                every[1] / max(every[0], 1))

@@ -225,3 +225,25 @@ def test_an_undecided_screen_runs_every_candidate_on_the_whole_image() -> None:
     assert screened >= 2 and net.shapes.count((640, 640)) == screened
     got = sorted(map(tuple, np.round(out.centre_px).astype(int).tolist()))
     assert got == sorted(centres)
+
+
+class _FixedNet:
+    """Stands in for the network: one confident peak in the middle cell, of the given radius."""
+
+    def __init__(self, radius_px: float) -> None:
+        self.radius_px = radius_px
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        h, w = x.shape[2] // 4, x.shape[3] // 4
+        return _maps(h, w, [(h // 2, w // 2, 0.0, 0.0, self.radius_px)])[None]
+
+
+@pytest.mark.parametrize(("diam_px", "margin", "kept"), [
+    (8.4, 0.8, True), (7.6, 0.8, False), (8.4, 1.0, False), (10.2, 1.0, True)])
+def test_a_crater_estimated_a_little_under_the_minimum_is_kept(diam_px, margin, kept) -> None:
+    """The network's size can fall short of a crater's true size: with the smallest crater
+    wanted at 10 px, an estimate down to `size_margin` of it is kept, not below."""
+    img = np.random.default_rng(2).normal(100.0, 1.0, (64, 64))
+    opts = learned.LearnedOptions(refine=False, min_diameter_px=10.0, size_margin=margin)
+    out = learned.LearnedDetector(_FixedNet(diam_px / 2), opts).detect(img, np.array([1.0, 0.0]))
+    assert (len(out) == 1) is kept
