@@ -293,14 +293,17 @@ def compare(
             paths = {n: store.path(n) for n in need}  # each as its stage committed it
         except PipelineError as exc:
             raise PipelineError(f"compare: {exc}") from None
-        entry = store.entry("detect") or {}
-        try:  # the config the detections were made with (the commit record, not config.json)
+        # the stage that made the detections (detect; fly in a closed loop) and the config it
+        # made them with (its commit record, not config.json)
+        producer = paths["detections.parquet"].parent.name.split(".")[0]
+        entry = store.entry(producer) or {}
+        try:
             d = entry["run_config"]["detection"]
             k = camera.intrinsics(camera.FieldOfView.from_config(d["fov_deg"],
                                                                  d["fov_convention"]),
                                   d["image_size_px"])
         except (KeyError, TypeError, ValueError):
-            raise PipelineError(f"compare: {store.stage_dir('detect') / 'stage.json'}: no "
+            raise PipelineError(f"compare: {store.stage_dir(producer) / 'stage.json'}: no "
                                 "detection config recorded; rerun `just run` for run "
                                 f"{run!r}") from None
         tables = {n: read_table(paths[n]) for n in need}
@@ -401,8 +404,10 @@ def detect_image(
     from pipeline.ops.detectors import make_detector
     from pipeline.workspace import workspace
 
-    if sun_azimuth_deg is not None and not math.isfinite(sun_azimuth_deg):
-        raise PipelineError(f"--sun-azimuth-deg {sun_azimuth_deg}: must be a finite angle (deg)")
+    if sun_azimuth_deg is not None and not (math.isfinite(sun_azimuth_deg)
+                                            and abs(sun_azimuth_deg) <= 360.0):
+        raise PipelineError(f"--sun-azimuth-deg {sun_azimuth_deg}: must be a finite angle within "
+                            "+-360 deg")
     ws = workspace()
     target = out.resolve()
     for folder in (target, *target.parents):  # never into a run's, campaign's or catalogue's

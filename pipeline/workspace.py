@@ -12,12 +12,18 @@ from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 
+from pipeline.errors import PipelineError
+
 PACKAGE_DIR = Path(__file__).resolve().parent
 
 
 def _find_root() -> Path:
     env = os.environ.get("CRATER_NAV_ROOT")
     if env:
+        if not (Path(env) / "runs" / "scenarios").is_dir():
+            raise PipelineError(f"CRATER_NAV_ROOT={env!r} in the environment: not a project "
+                                "folder (one holding runs/scenarios/); unset it to use the "
+                                "checkout")
         return Path(env).resolve()
     for start in (Path.cwd().resolve(), PACKAGE_DIR.parent):
         for d in (start, *start.parents):

@@ -200,3 +200,28 @@ def test_preparing_many_runs_shows_its_progress(workdir: Path, catalogue_db: Pat
     assert (len(tasks), len(invalid)) == (3, 0)
     err = " ".join(capsys.readouterr().err.split())
     assert "campaign many: prepared 2 of 3 runs' configs" in err
+
+
+@pytest.mark.parametrize(("overrides", "key", "why"), [
+    ({"hazard": {"enabled": False}}, "hazard.grid_step_m", "hazard.enabled = false"),
+    ({"velocimeter": {"enabled": False}}, "velocimeter.sigma_m_s", "velocimeter.enabled = false"),
+    ({"map": {"kind": "sphere"}}, "map.resolution_m", "map.kind = 'sphere'"),
+    ({"terrain": {"kind": "sphere"}, "map": {"kind": "truth"}}, "terrain.seed",
+     "terrain.kind = 'sphere'"),
+    ({}, "altimeter.fault_bias_m", "altimeter.fault = 'none'"),
+    ({"altimeter": {"fault": "dropout"}}, "altimeter.fault_bias_m", "fault = 'dropout'"),
+])
+def test_an_option_of_what_the_flight_does_not_carry_changes_nothing(overrides, key, why):
+    """The fly stage reads the whole section, but an instrument that is off, a map that is no
+    terrain, a sphere for a world, or a fault of another kind leave the option unread; with
+    it on, the option reaches the runs."""
+    from pipeline.campaign.reach import why_ignored
+    from pipeline.config import load_config
+
+    cfg = load_config("landing", "reach", overrides)
+    assert why in (why_ignored(cfg, key, "fly", set()) or "")
+    on = {"hazard": {"enabled": True}, "velocimeter": {"enabled": True},
+          "map": {"kind": "terrain"}, "terrain": {"kind": "terrain"},
+          "altimeter": {"fault": "bias"}}[key.split(".")[0]]
+    assert why_ignored(load_config("landing", "reach", {key.split(".")[0]: on}), key, "fly",
+                       set()) is None

@@ -45,15 +45,19 @@ def test_broken_and_empty_files_are_one_line(tmp_path: Path, monkeypatch, capsys
     empty.write_bytes(b"")
     tiny = tmp_path / "tiny.png"
     Image.fromarray(np.zeros((3, 3), np.uint8)).save(tiny)
+    (tmp_path / "folder.png").mkdir()
+    (tmp_path / "loop.png").symlink_to(tmp_path / "loop.png")
     code, out, err = _run(monkeypatch, capsys, str(broken), str(empty), str(tiny),
-                          str(tmp_path / "missing.tif"), "--out", str(tmp_path / "o"),
+                          str(tmp_path / "missing.tif"), str(tmp_path / "folder.png"),
+                          str(tmp_path / "loop.png"), "--out", str(tmp_path / "o"),
                           "--detector", "classical")
     assert code == 1
     lines = err.strip().splitlines()
-    assert len(lines) == 4 and all(line.startswith("error: ") for line in lines)
+    assert len(lines) == 6 and all(line.startswith("error: ") for line in lines)
     assert "Traceback" not in out + err
     assert "broken.png: " in lines[0] and "empty file" in lines[1]
     assert "too small" in lines[2] and "no such file" in lines[3]
+    assert "a folder" in lines[4] and "a link that leads nowhere" in lines[5]
     assert not (tmp_path / "o").exists()  # nothing written when an input cannot be used
 
 
@@ -94,6 +98,13 @@ def test_inputs_that_would_be_named_alike_or_scored_wrongly_are_refused(
     labels.write_text("0 0.5 0.5 0.3 0.3\n")
     nan_labels = tmp_path / "nan.txt"
     nan_labels.write_text("0 0.5 0.5 nan 0.3\n")
+    yolo_out = tmp_path / "yolo_out.txt"
+    yolo_out.write_text("0 0.5 0.5 0.1 0.1\n0 5.0 0.5 0.1 0.1\n")
+    csv_out = tmp_path / "csv_out.csv"
+    csv_out.write_text("ID,X,Y,W,H,C_X,CY\n1,10,10,7,7,13,13\n2,-5000,-5000,7,7,-4996,-4996\n"
+                       "3,900,10,7,7,903,13\n")
+    csv_huge = tmp_path / "csv_huge.csv"
+    csv_huge.write_text("ID,X,Y,W,H,C_X,CY\n1,10,10,1e308,1e308,12,12\n")
     float_img = tmp_path / "f.tif"
     arr = np.full((64, 64), 0.1, np.float32)
     arr[0, 0] = np.nan
@@ -102,6 +113,10 @@ def test_inputs_that_would_be_named_alike_or_scored_wrongly_are_refused(
                        ([str(a), str(b.with_name("c.png")), "--labels", str(labels)],
                         "one label file for 2 images"),
                        ([str(a), "--labels", str(nan_labels)], "label row 1"),
+                       ([str(a), "--labels", str(yolo_out)], "label row 2: YOLO"),
+                       ([str(a), "--labels", str(csv_out)], "2 of 3 labels lie outside"),
+                       ([str(a), "--labels", str(csv_huge)], "label row 1: a crater"),
+                       ([str(a), "--sun-azimuth-deg=1e300"], "within +-360"),
                        ([str(float_img)], "not finite"),
                        ([str(a), "--sun-azimuth-deg=nan"], "finite angle")):
         if "c.png" in " ".join(args):
@@ -182,7 +197,7 @@ def test_labels_print_recall_and_precision(tmp_path: Path, scene, monkeypatch, c
                         "classical", "--sun-azimuth-deg", f"{sun:.3f}")
     assert code == 0
     assert "(given)" in out and "recall" in out and "10-20 px" in out
-    c, d = di.read_labels(tmp_path / "s.txt", (256, 256))
+    c, d, _ = di.read_labels(tmp_path / "s.txt", (256, 256))
     np.testing.assert_allclose(d, 2 * r[keep], rtol=1e-4)
     np.testing.assert_allclose(c, scene.centre_px[keep], atol=1e-3)
 
@@ -223,3 +238,15 @@ def test_ten_thousand_px_square_image(tmp_path: Path, monkeypatch, capsys) -> No
     assert "10000 x 10000 px" in out
     with Image.open(tmp_path / "o" / "big_overlay.png") as im:
         assert max(im.size) == di.OVERLAY_MAX_PX
+
+
+def test_a_few_labels_outside_the_image_are_left_out_and_counted(tmp_path: Path) -> None:
+    """A label whose crater does not meet the image (one of the real sets has 4 such rows of
+    1,277) cannot be found: it is left out of the score, and counted."""
+    f = tmp_path / "l.csv"
+    f.write_text("ID,X,Y,W,H,C_X,CY\n1,10,10,8,8,14,14\n2,50,50,12,12,56,56\n"
+                 "3,60,962,12,12,66,968\n")
+    lab = di.read_labels(f, (800, 800))
+    assert lab.n_outside == 1
+    np.testing.assert_allclose(lab.centre_px, [[14, 14], [56, 56]])
+    np.testing.assert_allclose(lab.diam_px, [8, 12])

@@ -7,6 +7,7 @@ import numpy as np
 
 from pipeline.core.vision.detectors.base import Detections
 from pipeline.ops import detector_eval
+from pipeline.ops.detect_image import Labels
 
 
 class _Answers:
@@ -31,7 +32,8 @@ def test_real_scores_count_small_detections_only_in_the_precision_of_all() -> No
     ld = np.array([11.0, 30.0, 40.0, 8.0])
     det = _Answers([(50.5, 50.0, 9.0), (150.0, 51.0, 30.0), (50.0, 250.0, 8.0),
                     (200.0, 200.0, 9.0), (120.0, 150.0, 20.0)])
-    r = detector_eval.eval_real(lambda _n: det, [("img", np.zeros((300, 300)))], [(lc, ld)])
+    r = detector_eval.eval_real(lambda _n: det, [("img", np.zeros((300, 300)))],
+                                [Labels(lc, ld, 0)])
     assert r.recall == 2 / 3
     assert r.precision == 1 / 2
     assert r.precision_all == 3 / 5

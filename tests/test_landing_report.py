@@ -74,3 +74,11 @@ def test_the_ellipse_of_a_known_gaussian() -> None:
     np.testing.assert_allclose(axes, np.sqrt(CHI2_2DOF_99) * np.array([4.0, 1.0]), rtol=0.01)
     assert abs(major[0]) == pytest.approx(1.0, abs=1e-3)
     np.testing.assert_allclose(mean, 0.0, atol=0.02)
+
+
+def test_two_landed_runs_give_no_ellipse_and_no_nan(tmp_path) -> None:
+    """A covariance needs three runs: with two landed the ellipse is said not fitted, and no
+    `nan` reaches the report."""
+    text = landing_section(_runs(n=6).tail(2), tmp_path)
+    assert "Landing ellipse: not fitted (2 landed runs" in text
+    assert "nan" not in text.lower()

@@ -16,7 +16,7 @@ import pytest
 from test_cli import TINY, assert_clear_error, main
 
 from pipeline.config import load_config
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, PipelineError
 from pipeline.io import files
 
 PHYSICAL_RENDER = {"trajectory": {"epoch_utc": "2026-01-30T08:40:00Z", "start_s": 1800.0,
@@ -173,3 +173,41 @@ def test_runs_and_comparisons_keep_out_of_each_others_folders(tiny_scenario, mon
     code, _, err = main(monkeypatch, capsys, "run", "tiny", "--run-id", "compare-y")
     assert_clear_error(code, err[err.index("error: "):], str(folder), "comparison", "--run-id")
     assert not (folder / "manifest.json").exists()
+
+
+@pytest.mark.parametrize(("overrides", "key", "words"), [
+    ({"trajectory": {"start_s": 300.0}}, "trajectory.start_s", "reads no frame window"),
+    ({"trajectory": {"end_s": 340.0}}, "trajectory.end_s", "reads no frame window"),
+    ({"flight": {"coast_s": 800.0, "max_duration_s": 500.0}}, "flight.coast_s",
+     "before powered descent"),
+    ({"hazard": {"grid_step_m": 0.05}, "flight": {"slope_baseline_m": 100.0}},
+     "hazard.grid_step_m", "slope map"),
+    ({"hazard": {"grid_step_m": 0.05, "divert_m": 200.0}}, "hazard.grid_step_m", "slope map"),
+])
+def test_what_the_closed_loop_cannot_honour_is_refused_at_load(overrides, key, words):
+    """A frame window the closed loop does not read, a coast past the flight's end, a hazard
+    map beyond the machine (a MemoryError an hour into the flight): one line at load."""
+    with pytest.raises(ConfigError) as err:
+        load_config("landing", "refusal", overrides)
+    msg = str(err.value)
+    assert "\n" not in msg and key in msg and words in msg, msg
+
+
+def test_environment_values_that_mean_nothing_are_one_line(monkeypatch, capsys) -> None:
+    """CRATER_NAV_VISUALS neither on nor off, CRATER_NAV_ROOT at no project: one line naming
+    the variable (the first was taken as on, the second gave an empty list of scenarios)."""
+    from pipeline.io.rrd import visuals_enabled
+    from pipeline.workspace import workspace
+
+    monkeypatch.setenv("CRATER_NAV_VISUALS", "maybe")
+    with pytest.raises(PipelineError, match=r"CRATER_NAV_VISUALS='maybe' in the environment"):
+        visuals_enabled()
+    monkeypatch.setenv("CRATER_NAV_VISUALS", "off")
+    assert not visuals_enabled()
+    monkeypatch.setenv("CRATER_NAV_ROOT", "/nonexistent")
+    workspace.cache_clear()
+    try:
+        with pytest.raises(PipelineError, match=r"CRATER_NAV_ROOT='/nonexistent' in the env"):
+            workspace()
+    finally:
+        workspace.cache_clear()

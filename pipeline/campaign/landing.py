@@ -76,12 +76,15 @@ def landing_section(per_run: pl.DataFrame, folder: Path) -> str:
         ms_k, ms_f = float(np.mean(k**2)), float(np.mean(f**2))
         nav_share = ms_k / (ms_k + ms_f) if ms_k + ms_f > 0 else float("nan")
         angle = float(np.degrees(np.arctan2(major[1], major[0])))
-        lines += [f"Landing ellipse (99 %, a Gaussian fit to the {landed.height} landed runs): "
-                  f"{axes[0]:.1f} x {axes[1]:.1f} m (semi-axes), the major axis "
-                  f"{angle:.0f} deg from downrange toward crossrange, centred "
-                  f"{mean[0]:+.1f} m downrange, {mean[1]:+.1f} m crossrange; the empirical "
-                  f"99th percentile of the miss: {np.percentile(m_landed, 99):.1f} m (median "
-                  f"{np.median(m_landed):.2f} m).", "",
+        fit = (f"Landing ellipse (99 %, a Gaussian fit to the {landed.height} landed runs): "
+               f"{axes[0]:.1f} x {axes[1]:.1f} m (semi-axes), the major axis {angle:.0f} deg "
+               f"from downrange toward crossrange, centred {mean[0]:+.1f} m downrange, "
+               f"{mean[1]:+.1f} m crossrange" if np.isfinite(axes).all() else
+               f"Landing ellipse: not fitted ({landed.height} landed runs; a covariance needs "
+               "3 or more)")
+        lines += [f"{fit}; the empirical 99th percentile of the miss: "
+                  f"{np.percentile(m_landed, 99):.1f} m (median {np.median(m_landed):.2f} m).",
+                  "",
                   f"Whose miss: the navigator's knowledge error at touchdown has an RMS of "
                   f"{np.sqrt(ms_k):.2f} m over the landed runs, the flight-technical error "
                   f"(guidance against its own target) {np.sqrt(ms_f):.2f} m: navigation makes "

@@ -6,7 +6,8 @@ identical runs counted as independent in the percentiles):
   visuals read changes no table);
 - the paper's sensor reads none of the physical sensor's fields (`PHYSICAL_ONLY`);
 - the world's seed needs a world error (a catalogue or site-map sigma > 0), the jitter's seed a
-  jitter rate > 0;
+  jitter rate > 0; an option of an instrument that is off, of a map or terrain that is not
+  there, is not read (`RunConfig.ignored`);
 - a sweep grid repeats no value, a normal has sigma > 0 and a uniform high > low (checked with
   the spec's keys in `spec`).
 A key is judged on the base with the overrides and on each value of every grid and choice (a
@@ -124,6 +125,9 @@ def why_ignored(cfg: RunConfig, key: str, target: str, dispersed: set[str]) -> s
             and "identification.mode" not in dispersed):
         return ("identification is simulated (identification.mode = 'simulated': a draw at "
                 "detection.p_identify): the algorithms' options change nothing")
+    why = cfg.ignored(key)
+    if why is not None:
+        return why
     stages = [s for s in DAG.upstream_closure([target], cfg) if DAG.is_active(s, cfg)]
     for s in stages:
         for path in DAG[s].reads_for(cfg):

@@ -114,6 +114,9 @@ class FlightConfig:
                f"= {self.guidance_rate_hz:g} Hz does not divide the dynamics rate "
                f"({self.dynamics_rate_hz:g} Hz): guidance runs every whole number of steps")
         _num(self.max_duration_s, k + "max_duration_s", 1.0, MAX_FLIGHT_S, unit="s")
+        _check(self.coast_s < self.max_duration_s, k + "coast_s",
+               f"= {self.coast_s:g} s is not before flight.max_duration_s "
+               f"({self.max_duration_s:g} s): the flight would end before powered descent")
         _num(self.max_vertical_speed_m_s, k + "max_vertical_speed_m_s", 0.0, 100.0,
              lo_open=True, unit="m/s")
         _num(self.max_horizontal_speed_m_s, k + "max_horizontal_speed_m_s", 0.0, 100.0,
@@ -208,6 +211,6 @@ class HazardConfig:
         _num(self.clearance_m, k + "clearance_m", 0.0, 100.0, unit="m")
         _num(self.divert_m, k + "divert_m", 0.0, 1_000.0, unit="m")
         _num(self.min_coverage, k + "min_coverage", 0.0, 1.0, lo_open=True)
-        _check(self.divert_m / self.grid_step_m <= 2_000, k + "grid_step_m",
-               f"= {self.grid_step_m:g} m over a divert of {self.divert_m:g} m: a hazard map "
-               "of more than 4,000 x 4,000 nodes")
+
+MAX_HAZARD_CELLS = 4_001  # the slope map's side: ~4 GB of float64 planes at this side
+MAX_HAZARD_WORK = 2e10  # map cells x footprint cells x its ~20 correlations: ~a minute

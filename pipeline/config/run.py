@@ -13,13 +13,20 @@ from pipeline.config.catalogue import CatalogueConfig
 from pipeline.config.checks import MAX_SEED, _check, _num, validate_run_id
 from pipeline.config.detection import DetectionConfig, mounting_dcm
 from pipeline.config.estimation import EstimationConfig
-from pipeline.config.flight import FlightConfig, HazardConfig, VelocimeterConfig
+from pipeline.config.flight import (
+    MAX_HAZARD_CELLS,
+    MAX_HAZARD_WORK,
+    FlightConfig,
+    HazardConfig,
+    VelocimeterConfig,
+)
 from pipeline.config.inertial import MAX_IMU_SAMPLES, AltimeterConfig, ImuConfig
 from pipeline.config.navigation import IdentificationConfig, NavigationConfig
 from pipeline.config.render import RenderConfig
 from pipeline.config.scoring import ScoringConfig, SweepConfig
 from pipeline.config.surface import MapConfig, TerrainConfig
 from pipeline.config.trajectory import TrajectoryConfig
+from pipeline.core.guidance.hazard import slope_map_cells, slope_map_extent
 from pipeline.core.guidance.targeting import descent_orbit
 from pipeline.core.sensors import rim_sensor as sensor
 from pipeline.core.sensors.imu import GRADES, ImuGrade
@@ -163,10 +170,47 @@ class RunConfig:
         except ValueError as exc:
             raise ConfigError(f"flight.site_lat_deg: the descent orbit cannot reach the site "
                               f"({exc})") from None
+        t = self.trajectory
+        for key, value in (("start_s", t.start_s if t.start_s != 0.0 else None),
+                           ("end_s", t.end_s)):
+            _check(value is None, f"trajectory.{key}",
+                   f"= {value} s: the closed loop reads no frame window; it flies from "
+                   "flight.coast_s before powered descent to touchdown (or flight.max_duration_s)")
+        if self.hazard.enabled:
+            h = self.hazard
+            half, radius = slope_map_extent(h.divert_m, h.clearance_m, f.slope_baseline_m)
+            side, foot = slope_map_cells(half, h.grid_step_m, radius)
+            work = 20.0 * side * side * foot * foot
+            _check(side <= MAX_HAZARD_CELLS and work <= MAX_HAZARD_WORK, "hazard.grid_step_m",
+                   f"= {h.grid_step_m:g} m: with hazard.divert_m = {h.divert_m:g} m, "
+                   f"clearance_m = {h.clearance_m:g} m and flight.slope_baseline_m = "
+                   f"{f.slope_baseline_m:g} m the scan's slope map is {side:,} x {side:,} cells "
+                   f"with a {foot:,} x {foot:,} cell footprint (at most {MAX_HAZARD_CELLS:,} a "
+                   f"side and {MAX_HAZARD_WORK:.0e} cell operations, {work:.1e} here): a coarser "
+                   "grid step")
         n_samples = f.max_duration_s * f.dynamics_rate_hz
         _check(n_samples <= MAX_IMU_SAMPLES, "flight.max_duration_s",
                f"= {f.max_duration_s:g} s at {f.dynamics_rate_hz:g} Hz makes {n_samples:.3g} "
                f"steps, above the limit of {MAX_IMU_SAMPLES:,}")
+
+    def ignored(self, key: str) -> str | None:
+        """Why this config computes nothing differently for another value of `key` (dotted)
+        although a stage reads its section: an option of an instrument that is off, a map
+        option of a map that is no terrain, a terrain option of a sphere; None otherwise."""
+        section, _, name = key.partition(".")
+        for instrument in ("hazard", "velocimeter", "altimeter"):
+            if section == instrument and name != "enabled" and not getattr(self, section).enabled:
+                return f"{section}.enabled = false: its options change nothing"
+        a = self.altimeter
+        if section == "altimeter" and name.startswith("fault_") and (
+                a.fault == "none" or (name == "fault_bias_m" and a.fault != "bias")):
+            return f"altimeter.fault = {a.fault!r}: {key} changes nothing"
+        if section == "map" and name != "kind" and self.map.kind != "terrain":
+            return f"map.kind = {self.map.kind!r}: the flight map's options change nothing"
+        if (section == "terrain" and name not in ("kind", "crater_age_max")
+                and self.terrain.kind == "sphere"):
+            return "terrain.kind = 'sphere': the terrain's options change nothing"
+        return None
 
     def navigator_imu(self) -> ImuGrade:
         """The IMU error model the filter assumes: navigation.assumed_imu_grade's preset, or the

@@ -23,6 +23,7 @@ from typing import Any, cast
 
 import rerun as rr
 
+from pipeline.errors import PipelineError
 from pipeline.io.files import atomic_write_bytes
 
 
@@ -66,5 +67,11 @@ class _Off:
 
 def visuals_enabled() -> bool:
     """A run's recordings and figures are made unless the environment says
-    `CRATER_NAV_VISUALS=off`."""
-    return os.environ.get(VISUALS_ENV, "on").strip().lower() not in ("off", "0", "false", "no")
+    `CRATER_NAV_VISUALS=off` (or 0, false, no); a value that is neither on nor off is refused."""
+    value = os.environ.get(VISUALS_ENV, "on").strip().lower()
+    if value in ("off", "0", "false", "no"):
+        return False
+    if value in ("on", "1", "true", "yes", ""):
+        return True
+    raise PipelineError(f"{VISUALS_ENV}={os.environ[VISUALS_ENV]!r} in the environment: must be "
+                        "on or off (1/0, true/false, yes/no)")

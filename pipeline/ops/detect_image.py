@@ -18,6 +18,7 @@ import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import polars as pl
@@ -49,7 +50,10 @@ def read_image(path: Path) -> np.ndarray:
     missing, unreadable, empty or oversized file."""
     path = Path(path)
     if not path.is_file():
-        raise ImageInputError(f"{path}: no such file")
+        what = ("a folder, not an image file" if path.is_dir() else
+                "a link that leads nowhere (or round in a loop)" if path.is_symlink() else
+                "no such file")
+        raise ImageInputError(f"{path}: {what}")
     if path.stat().st_size == 0:
         raise ImageInputError(f"{path}: empty file (0 bytes)")
     try:
@@ -103,9 +107,20 @@ def _grey(im: Image.Image) -> np.ndarray:
     return arr.mean(axis=-1).astype(np.float32) if arr.ndim == 3 else arr.astype(np.float32)
 
 
-def read_labels(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Label centres (n, 2) px and diameters (n,) px of a label file (module docstring) for an
-    image of `shape` (H, W)."""
+class Labels(NamedTuple):
+    """Label centres (n, 2) px and diameters (n,) px of an image, and how many rows of the
+    file lay outside it (left out)."""
+
+    centre_px: np.ndarray
+    diam_px: np.ndarray
+    n_outside: int
+
+
+def read_labels(path: Path, shape: tuple[int, int]) -> Labels:
+    """The labels of a label file (module docstring) for an image of `shape` (H, W): a label
+    whose crater (a disc) does not meet the image is left out (counted), a file most of whose
+    labels lie outside, or a crater wider than twice the image, is refused (labels of another
+    image)."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -132,9 +147,25 @@ def read_labels(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndar
         raise ImageInputError(f"{path}: label row {int(np.flatnonzero(bad)[0]) + 1}: centre and "
                               f"size must be finite and the size > 0, got {vals[bad][0].tolist()}")
     h, w = shape
-    if np.all(vals <= 1.0):
+    if "C_X" not in first:  # YOLO: fractions of the image's width and height
+        out = np.flatnonzero(~((vals >= 0) & (vals <= 1)).all(axis=1))
+        if out.size:
+            raise ImageInputError(f"{path}: label row {int(out[0]) + 1}: YOLO centre and size "
+                                  f"are fractions of the image (0-1), got {vals[out[0]].tolist()}")
         vals = vals * np.array([w, h, w, h])
-    return vals[:, :2], 0.5 * (vals[:, 2] + vals[:, 3])
+    r = 0.5 * (0.5 * vals[:, 2] + 0.5 * vals[:, 3])  # halves first: 1e308 + 1e308 overflows
+    wide = np.flatnonzero(2 * r > 2 * max(h, w))
+    if wide.size:
+        i = int(wide[0])
+        raise ImageInputError(f"{path}: label row {i + 1}: a crater of {2 * r[i]:.4g} px, wider "
+                              f"than twice the {w} x {h} px image: labels of another image?")
+    off = (vals[:, 0] < -r) | (vals[:, 0] > w + r) | (vals[:, 1] < -r) | (vals[:, 1] > h + r)
+    if 2 * off.sum() > off.size:
+        i = int(np.flatnonzero(off)[0])
+        raise ImageInputError(f"{path}: {int(off.sum())} of {off.size} labels lie outside the "
+                              f"{w} x {h} px image (row {i + 1}: ({vals[i, 0]:.4g}, "
+                              f"{vals[i, 1]:.4g}) px): labels of another image?")
+    return Labels(vals[~off, :2], 2 * r[~off], int(off.sum()))
 
 
 def labels_for(labels: Path, image: Path) -> Path | None:
@@ -240,7 +271,7 @@ def _ellipse_points(c: np.ndarray, a: float, b: float, ang: float, k: float) -> 
 
 
 def overlay(path: Path, image: np.ndarray, det: Detections,
-            labels: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+            labels: Labels | None = None) -> None:
     """A PNG of the image (stretched to 8 bits, scaled to at most OVERLAY_MAX_PX) with the
     detected rims (green) and, given labels, the labels found (blue) and missed (red)."""
     img = np.asarray(image, np.float32)
@@ -253,7 +284,7 @@ def overlay(path: Path, image: np.ndarray, det: Detections,
         pic = pic.resize((max(1, round(img.shape[1] * k)), max(1, round(img.shape[0] * k))))
     draw = ImageDraw.Draw(pic)
     if labels is not None:
-        lc, ld = labels
+        lc, ld = labels.centre_px, labels.diam_px
         det_d = 2.0 * np.sqrt(det.semi_major_px * det.semi_minor_px)
         _, t2d = match_detections(det.centre_px, det_d / 2, lc, ld / 2, 0.25, 0.25)
         for c, d, m in zip(lc, ld, t2d, strict=True):
@@ -291,6 +322,8 @@ def run(paths: list[Path], detector: Detector, out_dir: Path, sun_azimuth_deg: f
             img = read_image(path)
             lab_file = labels_for(labels, path) if labels is not None else None
             lab = read_labels(lab_file, img.shape) if lab_file is not None else None
+            if lab is not None and lab.n_outside:
+                lines.append(f"{lab_file}: {lab.n_outside} labels outside the image left out")
             t0 = time.perf_counter()
             det, said = detect_image(detector, img, sun_azimuth_deg)
             ms = 1e3 * (time.perf_counter() - t0)
@@ -301,7 +334,7 @@ def run(paths: list[Path], detector: Detector, out_dir: Path, sun_azimuth_deg: f
             lines.append(f"{path.name}: {img.shape[1]} x {img.shape[0]} px, {len(det)} craters "
                          f"({detector.name}, {ms:.0f} ms); {said}; overlay {out_dir / name}")
             if lab is not None:
-                sc = score(det, *lab)
+                sc = score(det, lab.centre_px, lab.diam_px)
                 pooled.append(sc.table)
                 lines.extend(_score_lines(sc, f"  against {lab_file}"))
         if len(pooled) > 1:
@@ -359,17 +392,17 @@ def _check_inputs(paths: list[Path], labels: Path | None) -> list[str]:
 
 
 def _score_lines(sc: Scores, head: str) -> list[str]:
+    def pct(x: float | None) -> str:  # nothing to count: a dash, not nan
+        return "  -  " if x is None or not np.isfinite(x) else f"{x:.3f}"
+
     rec, prec = sc.line(10.0)
     prec_all = sc.line(0.0)[1]
-    out = [f"{head}: recall {rec:.3f}, precision {prec:.3f} (craters >= 10 px; centre within "
+    out = [f"{head}: recall {pct(rec)}, precision {pct(prec)} (craters >= 10 px; centre within "
            f"0.25 D, diameter within 25 %); precision of every detection against every label "
-           f"{prec_all:.3f}"]
+           f"{pct(prec_all)}"]
     for r in sc.table.iter_rows(named=True):
         label = f"{r['diam_lo_px']:g}+" if np.isinf(r["diam_hi_px"]) else \
             f"{r['diam_lo_px']:g}-{r['diam_hi_px']:g}"
-
-        def pct(x: float | None) -> str:
-            return "  -  " if x is None else f"{x:.3f}"
 
         out.append(f"    {label:>7} px: {r['n_labels']:5d} labels, recall {pct(r['recall'])}; "
                    f"{r['n_detections']:5d} detections, precision {pct(r['precision'])}")

@@ -104,7 +104,7 @@ class Real:
 
 
 def eval_real(detector_for: Callable[[str], Detector], images: list[tuple[str, np.ndarray]],
-              labels: list[tuple[np.ndarray, np.ndarray]]) -> Real:
+              labels: list[detect_image.Labels]) -> Real:
     """Each image (name, grey levels) scored against its labels (centres, diameters) with
     `detector_for(name)` (for leave-one-image-out: the fold that did not see that image), the
     Sun left to the detector."""
@@ -113,7 +113,7 @@ def eval_real(detector_for: Callable[[str], Detector], images: list[tuple[str, n
     rows = []
     totals = np.zeros(4, int)
     every = np.zeros(2, int)  # detections of any size, matched to a label of any size
-    for (name, img), (lc, ld) in zip(images, labels, strict=True):
+    for (name, img), (lc, ld, _) in zip(images, labels, strict=True):
         det, _ = detect_image.detect_image(detector_for(name), img, None)
         sc = detect_image.score(det, lc, ld)
         rec, prec = sc.line(10.0)

@@ -144,9 +144,11 @@ def check_plan(o: FlyOptions, orbit: DescentOrbit, target: Target) -> None:
     try:
         plan_descent(state, target, o.vehicle_belief, replace(o.guidance, ignition_t_s=None))
     except ValueError as exc:
-        raise ConfigError(f"flight.pdi_range_km = {o.site.pdi_range_m / 1e3:g} km: the nominal "
-                          f"descent cannot be planned from powered-descent initiation ({exc})"
-                          ) from None
+        v = o.vehicle_belief
+        raise ConfigError(f"flight.pdi_range_km = {o.site.pdi_range_m / 1e3:g} km with the "
+                          f"vehicle's {v.dry_mass_kg:g} kg dry and flight.propellant_kg "
+                          f"{v.propellant_mass_kg:g} kg: the nominal descent cannot be planned "
+                          f"from powered-descent initiation ({exc})") from None
 
 
 @dataclass(frozen=True)

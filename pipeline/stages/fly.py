@@ -199,7 +199,10 @@ def run(ctx: StageContext) -> StageResult:
     tx.table("site_terrain", tables.site_terrain_table(world_surface, sc.surfaces.map, target))
     tx.table("hazard_scan", tables.hazard_scan_table(rec, target))
     row = touchdown.row(0, named=True)
-    tx.output("touchdown.json").write_text(json.dumps(row, indent=2, default=float) + "\n")
+    # strict JSON: an undefined figure (no touchdown, the tanks never ran dry) is null, not NaN
+    tx.output("touchdown.json").write_text(json.dumps(
+        {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in row.items()},
+        indent=2, default=float, allow_nan=False) + "\n")
     folder = ctx.store.stage_dir("fly")
     info = {"status": rec.status, "miss_m": row["miss_m"]}
     terrain = world_surface if isinstance(world_surface, Terrain) else None
@@ -209,7 +212,8 @@ def run(ctx: StageContext) -> StageResult:
     return StageResult(info=info, summary=(
         f"flew {t_end:.1f} s ({rec.steps:,} steps): {rec.status}"
         + (f" ({rec.reason})" if rec.reason else "")
-        + (f"; missed the site by {row['miss_m']:.2f} m (knowledge error "
+        + (f"; missed its target by {row['miss_m']:.2f} m (the target "
+           f"{row['target_from_site_m']:.1f} m from the named site; knowledge error "
            f"{row['knowledge_error_m']:.2f} m, flight-technical {row['fte_m']:.2f} m), "
            f"touchdown {row['vertical_speed_m_s']:.2f} m/s down, "
            f"{row['horizontal_speed_m_s']:.2f} m/s across, "

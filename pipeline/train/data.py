@@ -94,7 +94,7 @@ def real_images(folder: Path) -> list[Labelled]:
         if not lab.is_file():
             continue
         img = np.asarray(Image.open(png).convert("L"))
-        c, d = read_labels(lab, img.shape)
+        c, d, _ = read_labels(lab, img.shape)
         inside = (c[:, 0] >= 0) & (c[:, 0] < img.shape[1]) & (c[:, 1] >= 0) \
             & (c[:, 1] < img.shape[0])
         c, r = c[inside], d[inside] / 2

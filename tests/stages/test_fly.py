@@ -47,7 +47,7 @@ def fast_landing(run_id: str, db: Path, **over) -> object:
 
 @pytest.fixture(scope="module")
 def flown(tmp_path_factory, catalogue_db) -> RunStore:
-    root = tmp_path_factory.mktemp("fly")
+    root = tmp_path_factory.mktemp("fly") / "runs"  # a project's runs folder (compare reads it)
     cfg = fast_landing("flown", catalogue_db)
     run_stages(cfg, root)
     return RunStore("flown", root)
@@ -101,6 +101,37 @@ def test_the_closed_loop_writes_the_open_loop_tables_with_their_columns(flown, c
     assert read(flown, "navigation")["status"].to_list().count("ok") > 0.9 * traj.height
     entry = flown.entry("score")
     assert entry is not None and "fly" in entry["inputs"]
+
+
+@pytest.mark.slow  # a whole flight: `just test-slow` (and CI)
+def test_touchdown_json_is_strict_json_with_null_for_what_did_not_happen(flown):
+    import json
+
+    def refuse(name: str) -> None:
+        raise AssertionError(f"{name} in touchdown.json")
+
+    row = json.loads(flown.path("touchdown.json").read_text(), parse_constant=refuse)
+    assert row["status"] == "landed" and row["t_out_of_fuel_s"] is None
+
+
+@pytest.mark.slow  # a whole flight: `just test-slow` (and CI)
+def test_compare_takes_a_flights_detections_from_the_fly_stage(flown, monkeypatch, capsys):
+    """A closed-loop run has no `detect` stage: compare reads the detection config from the
+    stage that made its detections (it had refused every landing run)."""
+    from test_cli import main
+
+    from pipeline.workspace import workspace
+
+    project = flown.run_dir.parent.parent
+    (project / "runs" / "scenarios").mkdir(exist_ok=True)
+    monkeypatch.setenv("CRATER_NAV_ROOT", str(project))
+    workspace.cache_clear()
+    try:
+        code, _, err = main(monkeypatch, capsys, "compare", "flown", "flown", "--name", "f")
+    finally:
+        workspace.cache_clear()
+    assert code in (0, None), err
+    assert (project / "runs" / "compare-f" / "report.md").is_file()
 
 
 @pytest.mark.slow  # a whole flight: `just test-slow` (and CI)
@@ -264,5 +295,6 @@ def test_an_unplannable_descent_names_the_pdi_range(tmp_path, catalogue_db):
     from pipeline.errors import PipelineError
 
     cfg = fast_landing("short", catalogue_db, flight={"pdi_range_km": 150.0})
-    with pytest.raises(PipelineError, match=r"flight.pdi_range_km = 150 km: the nominal "):
+    with pytest.raises(PipelineError, match=r"flight.pdi_range_km = 150 km with the vehicle.s "
+                       r".* kg dry and flight.propellant_kg .* kg: the nominal "):
         run_stages(cfg, tmp_path)

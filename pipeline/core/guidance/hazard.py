@@ -84,6 +84,20 @@ def tangent_axes(r_mcmf_m: np.ndarray) -> np.ndarray:
     return np.array([*tangent_basis(up), up])
 
 
+def slope_map_extent(divert_m: float, clearance_m: float, slope_baseline_m: float
+                     ) -> tuple[float, float]:
+    """The slope map `safe_site` builds: its half-width (m: the divert, the clearance and the
+    slope baseline) and the radius of each node's plane (m: half the baseline)."""
+    return divert_m + clearance_m + slope_baseline_m, 0.5 * slope_baseline_m
+
+
+def slope_map_cells(half_m: float, step_m: float, radius_m: float) -> tuple[int, int]:
+    """The side (cells) of `slope_map_deg`'s grid, its footprint beyond the outer nodes
+    included, and of a node's footprint."""
+    r = math.floor(radius_m / step_m)
+    return 2 * (round(half_m / step_m) + r) + 1, 2 * r + 1
+
+
 def slope_map_deg(en_m: np.ndarray, up_m: np.ndarray, half_m: float, step_m: float,
                   radius_m: float, min_coverage: float) -> tuple[np.ndarray, np.ndarray]:
     """Slopes (deg, (K, K), NaN below the coverage) of the least-squares planes through the
@@ -97,7 +111,7 @@ def slope_map_deg(en_m: np.ndarray, up_m: np.ndarray, half_m: float, step_m: flo
     k = round(half_m / step_m)
     nodes = np.arange(-k, k + 1) * step_m
     k += r  # the cells reach a footprint beyond the outer nodes
-    n = 2 * k + 1
+    n, _ = slope_map_cells(half_m, step_m, radius_m)
     ij = np.rint(en_m / step_m).astype(np.int64) + k
     keep = np.all((ij >= 0) & (ij < n), axis=1) & np.isfinite(up_m)
     flat = ij[keep, 1] * n + ij[keep, 0]
@@ -149,9 +163,9 @@ def safe_site(points_mcmf_m: np.ndarray, target_mcmf_m: np.ndarray, o: HazardOpt
     axes = tangent_axes(target_mcmf_m)
     p = points_mcmf_m[np.all(np.isfinite(points_mcmf_m), axis=1)] - target_mcmf_m
     local = p @ axes.T
-    half = o.divert_m + o.clearance_m + slope_baseline_m
-    slope, nodes = slope_map_deg(local[:, :2], local[:, 2], half, o.grid_step_m,
-                                 0.5 * slope_baseline_m, o.min_coverage)
+    half, radius = slope_map_extent(o.divert_m, o.clearance_m, slope_baseline_m)
+    slope, nodes = slope_map_deg(local[:, :2], local[:, 2], half, o.grid_step_m, radius,
+                                 o.min_coverage)
     k = len(nodes) // 2
     safe = np.nan_to_num(slope, nan=90.0) <= o.safe_slope_deg
     clear = ndimage.distance_transform_edt(np.pad(safe, 1, constant_values=False))[1:-1, 1:-1]
