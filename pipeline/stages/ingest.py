@@ -94,6 +94,7 @@ def run(ctx: StageContext) -> StageResult:
     key = catalogue_key(cfg)
     meta = cat.read_meta(path)
     built = tx.force or meta is None or meta.get("key") != key
+    replaced = meta is not None and meta.get("key") != key  # another catalogue was there
     if built:
         meta = build(cfg, key)
     assert meta is not None
@@ -119,6 +120,9 @@ def run(ctx: StageContext) -> StageResult:
             f"HEALPix order {meta['healpix_order']}"
             + (f"; {meta['rows_site_tier']:,} of them the site tier"
                if meta.get("rows_site_tier") else "") + ")",
+            *((f"note: {path} held another catalogue (other settings or source), now "
+               "replaced: runs made on it are refused by sql and view until run again; give "
+               "this scenario its own catalogue.db_path to keep both",) if replaced else ()),
             f"query it: just sql --db {cfg.catalogue.db_path} \"SELECT count(*) FROM craters\"",
             f"look at it: rerun {rrd}",
         ),

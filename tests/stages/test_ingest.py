@@ -511,12 +511,15 @@ def test_cli_ingest_of_a_file_never_replaces_the_default_catalogue(workdir, tmp_
     assert (meta(default_db), RunStore("default").token("ingest")) == before
 
 
-def test_a_runs_catalogue_rebuilt_by_another_run_is_refused_not_joined(workdir):
+def test_a_runs_catalogue_rebuilt_by_another_run_is_refused_not_joined(workdir, capsys):
     """Run a's tables must never be joined against another catalogue: once run b rebuilds the
-    shared database with another config, `sql --run a` and `view a` say so in one line."""
+    shared database with another config (saying so), `sql --run a` and `view a` say so in one
+    line."""
     run_ingest("a", **SMALL)
     assert run_catalogue_db(RunStore("a")) == workdir / "catalogue" / "craters.duckdb"
+    assert "held another catalogue" not in capsys.readouterr().out
     run_ingest("b", **SMALL, healpix_order=5)  # same database file, another catalogue
+    assert "held another catalogue" in " ".join(capsys.readouterr().out.split())
     with pytest.raises(CatalogueError, match="no longer holds the catalogue this run used"):
         run_catalogue_db(RunStore("a"))
     for command in (["sql", "--run", "a", "SELECT count(*) FROM craters"], ["view", "a"]):
