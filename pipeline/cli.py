@@ -304,7 +304,8 @@ def compare(
                                   d["image_size_px"])
         except (KeyError, TypeError, ValueError):
             raise PipelineError(f"compare: {store.stage_dir(producer) / 'stage.json'}: no "
-                                "detection config recorded; rerun `just run` for run "
+                                "detection config recorded; run its scenario again (`just run "
+                                "<scenario> --run-id RUN`) for run "
                                 f"{run!r}") from None
         tables = {n: read_table(paths[n]) for n in need}
         series.append(cmp.frame_series(run, tables["frames.parquet"], tables["scores.parquet"],

@@ -63,7 +63,7 @@ def spec_file(workdir: Path, catalogue_db: Path) -> str:
     ('[dispersions]\nseed = { kind = "uniform", low = 1.0, high = 2.0 }\n', "seed"),
     ('base = "../nowhere.toml"\n', "nowhere.toml"),
     ('[overrides]\nestimation = { methods = ["nope"] }\n', "estimation.methods"),  # at load
-    ('[dispersions]\nseed = { values = [1] }\n', "runs = 2"),  # a seed grid repeats no run
+    ('[dispersions]\nseed = { values = [1] }\n', "one value is an override"),  # no grid
 ])
 def test_spec_errors_are_one_line_naming_file_and_key(workdir: Path, text: str, named: str):
     path = workdir / "runs" / "campaigns" / "bad.toml"

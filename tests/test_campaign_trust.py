@@ -67,6 +67,23 @@ def test_an_invalid_first_run_is_a_status_and_the_outputs_are_written(workdir: P
         .to_list() == ["invalid_config", "ok"]
     assert 0.123 not in pl.read_parquet(paths.root / "campaign.parquet")[
         "detection.p_identify"].to_list()
+    # the readers of the campaign's own outputs check them against campaign.json
+    from pipeline.io.sqlshell import SqlSessionError, open_session
+    from pipeline.viz.viewer import run_recordings
+
+    _, shown, _ = run_recordings("first")
+    (paths.root / "evil.rrd").symlink_to(paths.root / "campaign.parquet")
+    assert run_recordings("first")[1] == shown  # a stray recording is not opened
+    db = paths.root / "campaign.duckdb"
+    data = bytearray(db.read_bytes())
+    data[-100] ^= 0x01
+    db.write_bytes(bytes(data))
+    with pytest.raises(SqlSessionError, match=r"campaign.duckdb: not the file .*campaign.json"):
+        open_session(campaign="first")
+    if shown:  # a damaged recording is refused, not opened
+        shown[0].write_bytes(shown[0].read_bytes()[:-10])
+        with pytest.raises(PipelineError, match=r"not the file .*campaign.json records"):
+            run_recordings("first")
 
 
 def test_a_damaged_part_is_left_out_of_the_outputs_not_read(workdir: Path, catalogue_db: Path,
@@ -76,7 +93,7 @@ def test_a_damaged_part_is_left_out_of_the_outputs_not_read(workdir: Path, catal
     from pipeline.campaign.results import write_outputs
 
     spec = load_spec(write_spec(workdir, catalogue_db, "left", runs=1, body=(
-        '[dispersions]\n"detection.p_identify" = { values = [1.5] }\n')))
+        '[dispersions]\n"detection.p_identify" = { kind = "uniform", low = 1.5, high = 1.6 }\n')))
     run_campaign(spec, local=True)
     paths = campaign_paths(spec)
     part = paths.part(spec.run_id(0), "windows")
@@ -127,6 +144,18 @@ def test_a_campaign_with_no_valid_run_writes_its_outputs_and_fails(workdir: Path
      "no frame is rendered"),
     ('"identification.star_tracker_sigma_arcsec" = { kind = "uniform", low = 1.0, high = 9.0 }',
      "", "", "identification.star_tracker_sigma_arcsec", "identification is simulated"),
+    ('"detection.selection" = { values = ["random", "largest"] }', "", "",
+     "detection.selection", "with no cap"),
+    ('"estimation.gate_probability" = { kind = "uniform", low = 0.9, high = 0.99 }', "", "",
+     "estimation.gate_probability", "robust = false"),
+    ('"navigation.loose_method" = { values = ["paper", "joint"] }', "", "",
+     "navigation.loose_method", "no fix is taken"),
+    ('"trajectory.jitter_knot_s" = { kind = "uniform", low = 0.5, high = 2.0 }', "", "",
+     "trajectory.jitter_knot_s", "jitter's knots"),
+    ('"detection.p_identify" = { values = [0.5] }', "", "", "detection.p_identify",
+     "one value is an override"),
+    ('"detection.sigma_range_m" = { kind = "normal", mean = 10.0, sigma = 1e-300 }', "", "",
+     "detection.sigma_range_m", "more than 1e-9 of the mean"),
 ])
 def test_a_dispersion_that_changes_nothing_is_refused_naming_it(workdir: Path, catalogue_db: Path,
                                                                 body, head, trajectory, named,
@@ -155,6 +184,13 @@ def test_a_dispersion_that_changes_nothing_is_refused_naming_it(workdir: Path, c
     '"identification.star_tracker_sigma_arcsec" = { kind = "uniform", low = 1.0, high = 9.0 }\n'
     '"identification.mode" = { values = ["simulated", "lost_in_space"] }\n'
     '[overrides.detection]\nsensor = "physical"',
+    # a cap, or a dispersed cap, makes the selection count; a dispersed switch its options
+    '"detection.selection" = { values = ["random", "largest"] }\n[overrides.detection]\n'
+    'max_craters = 10',
+    '"detection.selection" = { kind = "choice", values = ["random", "largest"] }\n'
+    '"detection.max_craters" = { values = [10, "none"] }',
+    '"estimation.gate_probability" = { kind = "uniform", low = 0.9, high = 0.99 }\n'
+    '"estimation.robust" = { values = [false, true] }',
 ])
 def test_a_dispersion_that_reaches_its_runs_is_accepted(workdir: Path, catalogue_db: Path, body):
     load_spec(write_spec(workdir, catalogue_db, "reach", runs=2, trajectory=PHYSICAL,

@@ -137,6 +137,28 @@ def test_sql_does_not_register_an_output_outside_the_run(here, monkeypatch, caps
     assert_clear_error(code, err, "points outside the run")
 
 
+@pytest.mark.parametrize("reader", READERS)
+@pytest.mark.parametrize("record", ["{bad json", "[1]", "link"])
+def test_readers_refuse_a_run_whose_stage_record_is_damaged(here, monkeypatch, capsys, reader,
+                                                            record):
+    """A stage.json that is not a commit record (or a link to one elsewhere) made the stage
+    vanish: sql had no `detections`, view opened the run without its recording. Refused."""
+    run = f"r-rec-{reader}-{len(record)}"
+    folder = copy_run(here, "tiny", run)
+    entry = folder / "detect" / "stage.json"
+    if record == "link":
+        outside = here / f"outside-{run}.json"
+        shutil.copyfile(entry, outside)
+        entry.unlink()
+        entry.symlink_to(outside)
+    else:
+        entry.write_text(record)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    code, _, err = main(monkeypatch, capsys, *READERS[reader](run))
+    assert_clear_error(code, err, "detect/stage.json", "damaged")
+
+
 def test_the_viewer_refuses_a_run_with_any_output_not_as_committed(here, monkeypatch, capsys):
     """Not only the recordings it opens: a run whose tables were altered is not the run shown."""
     folder = copy_run(here, "tiny", "r-view-table")

@@ -211,3 +211,27 @@ def test_environment_values_that_mean_nothing_are_one_line(monkeypatch, capsys) 
             workspace()
     finally:
         workspace.cache_clear()
+
+
+@pytest.mark.parametrize(("section", "key", "value"), [
+    ("catalogue", "db_path", "runs/r1/cat.duckdb"), ("catalogue", "db_path", "pipeline/x.duckdb"),
+    ("identification", "index_dir", "runs/r1"), ("identification", "index_dir", "./runs/c/x")])
+def test_a_written_path_inside_the_runs_or_the_code_is_refused(section, key, value):
+    """The catalogue's database and the indexes wrote into another run's or a campaign's folder,
+    or the source tree: one line at load."""
+    with pytest.raises(ConfigError) as err:
+        load_config("default", "paths", {section: {key: value}})
+    msg = str(err.value)
+    assert "\n" not in msg and f"{section}.{key}" in msg and "inside the project's" in msg, msg
+
+
+def test_a_frame_rate_too_low_for_the_window_gives_no_frame_outside_it():
+    """1e-300 Hz over 1,900-1,930 s: the frame of slack at the window's edge took a frame at
+    t = 0 s, outside the window, and the run went on with it; no frame in the window is
+    refused, as at 0.001 Hz."""
+    from pipeline.ops.trajectory import simulate
+
+    cfg = load_config("default", "rate", {"trajectory": {"start_s": 1900.0, "end_s": 1930.0,
+                                                         "frame_rate_hz": 1e-300}})
+    with pytest.raises(ConfigError, match="no frame between start_s"):
+        simulate(cfg.trajectory)

@@ -10,6 +10,7 @@ catalogue; bad `--run` values, a timeout, the table listing and the csv/markdown
 from __future__ import annotations
 
 import io
+import json
 import shutil
 import time
 from pathlib import Path
@@ -292,6 +293,10 @@ def test_a_campaign_none_of_whose_runs_ran_is_read_without_a_catalogue(project):
     con = duckdb.connect(str(folder / "campaign.duckdb"))
     con.execute("CREATE TABLE runs AS SELECT 0 AS run, 'invalid_config' AS status")
     con.close()
+    from pipeline.io.files import file_records  # the record a campaign writes beside it
+
+    (folder / "campaign.json").write_text(json.dumps(
+        {"outputs": file_records(folder, ["campaign.duckdb"])}))
     assert query("SELECT status FROM campaign.runs", campaign="mc").split() == [
         "status", "invalid_config"]
     listing = query(None, campaign="mc")
@@ -462,3 +467,15 @@ def test_cli_prints_csv_and_lists_tables(project):
     listing = invoke("--run", "r1")
     assert listing.exit_code == 0, listing.output
     assert "hits" in listing.output and "crater_id BIGINT" in listing.output
+
+
+def test_listing_a_database_whose_views_read_files_is_not_a_traceback(project):
+    """A run's run.duckdb given as --db: its views read Parquet files the session may not
+    open; the listing shows them with unknown rows instead of raising."""
+    pl.DataFrame({"a": [1, 2]}).write_parquet(project / "t.parquet")
+    db = project / "views.duckdb"
+    con = duckdb.connect(str(db))
+    con.execute(f"CREATE VIEW t AS SELECT * FROM read_parquet('{project / 't.parquet'}')")
+    con.close()
+    listing = query(None, db=str(db))
+    assert "t,catalogue,," in listing.replace('"', ""), listing

@@ -125,9 +125,9 @@ def why_ignored(cfg: RunConfig, key: str, target: str, dispersed: set[str]) -> s
             and "identification.mode" not in dispersed):
         return ("identification is simulated (identification.mode = 'simulated': a draw at "
                 "detection.p_identify): the algorithms' options change nothing")
-    why = cfg.ignored(key)
-    if why is not None:
-        return why
+    found = cfg.ignored(key)
+    if found is not None and not set(found[1]) & dispersed:
+        return found[0]
     stages = [s for s in DAG.upstream_closure([target], cfg) if DAG.is_active(s, cfg)]
     for s in stages:
         for path in DAG[s].reads_for(cfg):

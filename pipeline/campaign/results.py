@@ -48,6 +48,7 @@ from pipeline.campaign.report import report_text
 from pipeline.campaign.spec import CampaignSpec
 from pipeline.core.math import chi_square
 from pipeline.engine.progress import console
+from pipeline.io.files import file_records
 
 TIMING_COLUMNS = ("wall_s", "node")  # vary from one execution to the next
 PER_FRAME = ("navigation", "scores")  # the runs' per-frame parts, tables of campaign.duckdb
@@ -225,6 +226,7 @@ def write_outputs(spec: CampaignSpec, paths: CampaignPaths,
         counts = {"runs": spec.runs, "done": per_run.height, "ok": ok,
                   "statuses": dict(per_run["status"].value_counts().iter_rows())
                   if per_run.height else {}, "last_execution": execution}
+        counts["outputs"] = file_records(stage, [n for n in OUTPUTS if n != "campaign.json"])
         (stage / "campaign.json").write_text(json.dumps(counts, indent=1) + "\n")
         for name in OUTPUTS:
             if (stage / name).is_file():

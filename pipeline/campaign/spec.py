@@ -258,16 +258,21 @@ def _dispersion(key: str, raw: Any) -> Dispersion:
                               f"{getattr(tp, '__name__', tp)} (use choice or values)")
         a, b = (("mean", "sigma") if kind == "normal" else ("low", "high"))
         pa, pb = _number(raw[a], f"{where}.{a}"), _number(raw[b], f"{where}.{b}")
-        if kind == "normal" and pb <= 0:
-            raise ConfigError(f"{where}.sigma = {pb:g}: must be > 0 (a fixed value is an "
-                              "override: every run would draw the same)")
-        if kind == "uniform" and pb <= pa:
-            raise ConfigError(f"{where}.high = {pb:g}: must be > low ({pa:g}; a fixed value is "
-                              "an override: every run would draw the same)")
+        if kind == "normal" and pb <= 1e-9 * abs(pa):
+            raise ConfigError(f"{where}.sigma = {pb:g}: must be > 0 and more than 1e-9 of the "
+                              "mean (a fixed value is an override: every run would draw the "
+                              "same)")
+        if kind == "uniform" and pb - pa <= 1e-9 * max(abs(pa), abs(pb)):
+            raise ConfigError(f"{where}.high = {pb:g}: must be > low ({pa:g}), by more than 1e-9 "
+                              "of them (a fixed value is an override: every run would draw the "
+                              "same)")
         return Dispersion(key, kind, (pa, pb))
     values = raw["values"]
     if not isinstance(values, list) or not values:
         raise ConfigError(f"{where}.values: expected a non-empty list, got {values!r}")
+    if len(values) == 1:
+        raise ConfigError(f"{where}.values = {values!r}: one value is an override (put it in "
+                          "[overrides]): every run would take the same")
     for i, v in enumerate(values):
         _check_value(v, tp, f"{where}.values[{i}]")
         if kind == "grid" and any(_same(v, w) for w in values[:i]):

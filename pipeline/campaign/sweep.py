@@ -10,6 +10,7 @@ sweep_scores.parquet, sweep_report.md, the Figs. 7-8 per method, sweep.rrd.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from pathlib import Path
@@ -23,6 +24,7 @@ from pipeline.campaign.spec import CampaignSpec, spec_from_data
 from pipeline.campaign.toml_writer import toml_text
 from pipeline.config import RunConfig, scenario_path
 from pipeline.errors import ConfigError
+from pipeline.io.files import atomic_write_text, file_records
 from pipeline.ops.sweep import cap_label, table1, table1_markdown
 from pipeline.studies.suslu2025 import STUDY
 from pipeline.viz.report import sweep_report
@@ -102,6 +104,11 @@ def _write(paths: CampaignPaths, spec: CampaignSpec, cfg: RunConfig, scores: pl.
                 stale.unlink()
         for name in names:
             os.replace(stage / name, root / name)
+        # the sweep's files join the campaign's record of its outputs (the readers check them)
+        record = root / "campaign.json"
+        counts = json.loads(record.read_text())
+        counts["outputs"] = {**counts.get("outputs", {}), **file_records(root, names)}
+        atomic_write_text(record, json.dumps(counts, indent=1) + "\n")
     finally:
         shutil.rmtree(stage, ignore_errors=True)
     return [root / name for name in names]

@@ -51,9 +51,14 @@ def _written_path(value: str, key: str) -> None:
     _check(bool(value.strip()), key, "must not be empty")
     _check("\0" not in value, key, "must not hold a NUL byte")
     path = Path(value).expanduser()
-    _check(path.is_absolute() or Path(os.path.normpath(path)).parts[:1] != ("..",), key,
+    first = Path(os.path.normpath(path)).parts[:1]
+    _check(path.is_absolute() or first != ("..",), key,
            f"= {value!r}: a relative path is under the project root; this one leaves it (give "
            "an absolute path to keep it elsewhere)")
+    _check(path.is_absolute() or first not in (("runs",), ("pipeline",), ("tests",)), key,
+           f"= {value!r}: inside the project's {first[0] if first else ''}/ folder, which holds "
+           "runs, campaigns and comparisons (each command's own) or the code; use catalogue/ "
+           "or another folder")
 
 
 def _fmt(value: Any) -> str:

@@ -193,23 +193,42 @@ class RunConfig:
                f"= {f.max_duration_s:g} s at {f.dynamics_rate_hz:g} Hz makes {n_samples:.3g} "
                f"steps, above the limit of {MAX_IMU_SAMPLES:,}")
 
-    def ignored(self, key: str) -> str | None:
+    def ignored(self, key: str) -> tuple[str, tuple[str, ...]] | None:
         """Why this config computes nothing differently for another value of `key` (dotted)
-        although a stage reads its section: an option of an instrument that is off, a map
-        option of a map that is no terrain, a terrain option of a sphere; None otherwise."""
+        although a stage reads its section (an option of an instrument that is off, of a map
+        that is no terrain, of a sphere's terrain, of a step that does not run), and the keys
+        that decide it; None otherwise."""
         section, _, name = key.partition(".")
         for instrument in ("hazard", "velocimeter", "altimeter"):
             if section == instrument and name != "enabled" and not getattr(self, section).enabled:
-                return f"{section}.enabled = false: its options change nothing"
-        a = self.altimeter
+                return (f"{section}.enabled = false: its options change nothing",
+                        (f"{section}.enabled",))
+        a, e, n = self.altimeter, self.estimation, self.navigation
         if section == "altimeter" and name.startswith("fault_") and (
                 a.fault == "none" or (name == "fault_bias_m" and a.fault != "bias")):
-            return f"altimeter.fault = {a.fault!r}: {key} changes nothing"
+            return f"altimeter.fault = {a.fault!r}: {key} changes nothing", ("altimeter.fault",)
         if section == "map" and name != "kind" and self.map.kind != "terrain":
-            return f"map.kind = {self.map.kind!r}: the flight map's options change nothing"
+            return (f"map.kind = {self.map.kind!r}: the flight map's options change nothing",
+                    ("map.kind",))
         if (section == "terrain" and name not in ("kind", "crater_age_max")
                 and self.terrain.kind == "sphere"):
-            return "terrain.kind = 'sphere': the terrain's options change nothing"
+            return ("terrain.kind = 'sphere': the terrain's options change nothing",
+                    ("terrain.kind",))
+        if key == "detection.selection" and self.detection.max_craters is None:
+            return ("detection.max_craters = none: with no cap the selection changes nothing",
+                    ("detection.max_craters",))
+        if (key in ("estimation.gate_probability", "estimation.ransac_max_hypotheses",
+                    "estimation.ransac_confidence") and not e.robust):
+            return "estimation.robust = false: the robust step's options change nothing", (
+                "estimation.robust",)
+        if key == "navigation.loose_method" and n.crater_updates != "loose" and (
+                n.init != "first_fix"):
+            return (f"navigation.crater_updates = {n.crater_updates!r} and init = {n.init!r}: "
+                    "no fix is taken from a method", ("navigation.crater_updates",
+                                                      "navigation.init"))
+        if key == "trajectory.jitter_knot_s" and self.trajectory.jitter_rate_sigma_rad_s == 0:
+            return ("trajectory.jitter_rate_sigma_rad_s = 0: the jitter's knots change nothing",
+                    ("trajectory.jitter_rate_sigma_rad_s",))
         return None
 
     def navigator_imu(self) -> ImuGrade:

@@ -98,3 +98,34 @@ def _fsync_dir(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def file_records(folder: Path, names: list[str]) -> dict[str, dict[str, object]]:
+    """Size and sha256 of each named file in `folder` that exists: what a folder's record
+    (e.g. campaign.json's `outputs`) promises its readers."""
+    out: dict[str, dict[str, object]] = {}
+    for name in names:
+        p = folder / name
+        if p.is_file():
+            out[name] = {"size": p.stat().st_size, "sha256": sha256_file(p)}
+    return out
+
+
+def verified_file(folder: Path, name: str, record: str) -> Path:
+    """folder/name as `folder/record` (a JSON file with `outputs`: name -> size, sha256)
+    promises it: a plain file (not a link), of that size and sha256; else ValueError naming
+    the file (a reader refuses what was replaced, damaged or never recorded)."""
+    import json
+
+    path, rec = folder / name, folder / record
+    try:
+        promised = json.loads(rec.read_text())["outputs"][name]
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError):
+        raise ValueError(f"{path}: not recorded in {rec} (written by another version, or the "
+                         "record is damaged)") from None
+    if path.is_symlink() or not path.is_file():
+        raise ValueError(f"{path}: {'a link' if path.is_symlink() else 'missing'}, not the "
+                         f"file {rec} records")
+    if path.stat().st_size != promised.get("size") or sha256_file(path) != promised.get("sha256"):
+        raise ValueError(f"{path}: not the file {rec} records (replaced or damaged since)")
+    return path

@@ -31,6 +31,7 @@ import pyarrow.dataset as pads
 
 from pipeline.config import validate_run_id
 from pipeline.errors import ConfigError, PipelineError
+from pipeline.io.files import verified_file
 from pipeline.io.sql_guard import (
     SqlError,
     SqlTimeout,
@@ -141,7 +142,11 @@ def open_session(run: str | None = None, db: str | Path | None = None,
     if campaign is not None:
         campaign_dir = check_run(campaign, ws.runs_dir, marker="campaign.duckdb",
                                  what="campaign")
-        campaign_db = campaign_dir / "campaign.duckdb"
+        try:  # as the campaign wrote it (its campaign.json records the size and sha256)
+            campaign_db = verified_file(campaign_dir, "campaign.duckdb", "campaign.json")
+        except ValueError as exc:
+            raise SqlSessionError(f"--campaign {campaign!r}: {exc}; run `just campaign` again "
+                                  "to rewrite it") from None
         ingest = campaign_dir / "runs" / f"{campaign}-ingest"  # the campaign's shared catalogue
         if db is None and run is None and (ingest / "config.json").is_file():
             run_catalogue_db = run_catalogue(ingest, ws)
@@ -256,15 +261,19 @@ def list_tables(session: Session) -> Result:
         f"database_name IN ('temp', {_literal(CATALOGUE_ALIAS)}, {_literal(CAMPAIGN_ALIAS)}) "
         "GROUP BY "
         "database_name, table_name ORDER BY database_name = 'temp' DESC, table_name").fetchall()
-    names, where, counts, columns = [], [], [], []
+    names, where, columns = [], [], []
+    counts: list[int | None] = []
     for database, table, cols in rows:
         in_run = database == "temp"
         if database == CAMPAIGN_ALIAS or (not in_run and table in session.run_tables):
             name = f"{database}.{table}"
         else:
             name = table
-        [(n,)] = con.execute(f"SELECT count(*) FROM {_ident(database)}.main.{_ident(table)}"
-                             ).fetchall()
+        try:
+            [(n,)] = con.execute(f"SELECT count(*) FROM {_ident(database)}.main.{_ident(table)}"
+                                 ).fetchall()
+        except duckdb.Error:  # a view over files the session may not read (a run's run.duckdb
+            n = None          # given as --db): listed, its rows unknown
         names.append(name)
         where.append(f"run {session.run_id}" if in_run else f"campaign {session.campaign}"
                      if database == CAMPAIGN_ALIAS else "catalogue")

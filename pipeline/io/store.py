@@ -114,7 +114,7 @@ class RunStore:
     def entry(self, stage: str) -> dict[str, Any] | None:
         """The committed manifest entry of `stage` (None when it never committed)."""
         path = self.stage_dir(stage) / ENTRY_FILE
-        if not path.is_file():
+        if not path.is_file() or path.is_symlink():  # a record elsewhere is no commit
             return None
         try:
             entry = json.loads(path.read_text())
@@ -154,6 +154,13 @@ class RunStore:
         StageInputError naming the file otherwise (a reader never serves a replaced, altered or
         missing output as the run's)."""
         found = {}
+        for link in (sorted(self.run_dir.iterdir()) if self.run_dir.is_dir() else []):
+            if (link.is_symlink() and not link.name.startswith(".")
+                    and self.entry(link.name) is None):  # a stage whose record is damaged
+                raise StageInputError(
+                    f"{link / ENTRY_FILE}: missing, a link or not a commit record (damaged); "
+                    f"run the run's scenario again (`just run <scenario> --run-id "
+                    f"{self.run_id}`, or --force {link.name})")
         for stage in self.committed_stages():
             entry = self.entry(stage) or {}
             for kind in ("outputs", "visuals"):
@@ -164,7 +171,8 @@ class RunStore:
 
     def _verify(self, stage: str, name: Any, promised: Any) -> Path:
         folder = self.stage_dir(stage)
-        redo = f"rerun `just run` for run {self.run_id!r} (or the stage: --force {stage})"
+        redo = (f"run the run's scenario again (`just run <scenario> --run-id {self.run_id}`, "
+                f"or --force {stage})")
         if (not isinstance(name, str) or not name or name in (".", "..") or "/" in name
                 or "\0" in name or name == ENTRY_FILE):
             raise StageInputError(f"{folder / ENTRY_FILE}: lists an output {name!r} that is not "

@@ -28,7 +28,10 @@ def frame_times(t: TrajectoryConfig, t_impact_s: float) -> tuple[np.ndarray, np.
     k1 = int(np.floor(end * t.frame_rate_hz + 1e-9))
     k = np.arange(k0, k1 + 1)
     t_s = k / t.frame_rate_hz
-    keep = t_s < t_impact_s
+    # the 1e-9 frame of slack takes a frame at the window's edge despite round-off; at a rate so
+    # low that it spans more than the window, it must not bring in a frame outside it
+    slack_s = 1e-9 * max(1.0, abs(t.start_s), abs(end))
+    keep = (t_s < t_impact_s) & (t_s >= t.start_s - slack_s) & (t_s <= end + slack_s)
     return k[keep], t_s[keep]
 
 

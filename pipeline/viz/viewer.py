@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ctypes.util
 import glob
+import json
 import os
 import shutil
 import signal
@@ -26,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline.errors import PipelineError
+from pipeline.io.files import verified_file
 
 WINDOW_SIZE = (1600, 1000)
 LOAD_TIMEOUT_S = 60.0
@@ -63,8 +65,14 @@ def run_recordings(run: str, root: Path | None = None) -> tuple[Path, list[Path]
 
     store = RunStore(run, root)
     if not store.manifest_path.is_file() and (store.run_dir / "campaign.parquet").is_file():
-        return store.run_dir, sorted(p for p in store.run_dir.glob("*.rrd")
-                                     if p.stat().st_size), None
+        # only what campaign.json records, each as recorded (size, sha256, not a link)
+        try:
+            names = json.loads((store.run_dir / "campaign.json").read_text())["outputs"]
+            files = [verified_file(store.run_dir, n, "campaign.json") for n in sorted(names)
+                     if n.endswith(".rrd")]
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+            raise PipelineError(f"view {run}: {exc}") from None
+        return store.run_dir, files, None
     committed = store.verified()  # the whole run as committed, not only what is shown
     facts_path = committed.get("catalogue.json")
     catalogue = None
