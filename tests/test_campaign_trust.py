@@ -151,7 +151,7 @@ def test_a_campaign_with_no_valid_run_writes_its_outputs_and_fails(workdir: Path
     ('"navigation.loose_method" = { values = ["paper", "joint"] }', "", "",
      "navigation.loose_method", "no fix is taken"),
     ('"trajectory.jitter_knot_s" = { kind = "uniform", low = 0.5, high = 2.0 }', "", "",
-     "trajectory.jitter_knot_s", "jitter's knots"),
+     "trajectory.jitter_knot_s", "jitter's seed and knots change nothing"),
     ('"detection.p_identify" = { values = [0.5] }', "", "", "detection.p_identify",
      "one value is an override"),
     ('"detection.sigma_range_m" = { kind = "normal", mean = 10.0, sigma = 1e-300 }', "", "",

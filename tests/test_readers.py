@@ -193,3 +193,23 @@ def test_compare_of_a_run_with_no_detections_writes_the_report(here, monkeypatch
     assert code in (0, None), err
     text = (here / "runs" / "compare-nothing" / "report.md").read_text()
     assert "| cam |" in text and "| blind |" in text
+
+
+def test_a_campaigns_record_vouches_only_for_its_own_files(tmp_path):
+    """`verified_file`: a file as its folder's record promises it (size, sha256), not a link,
+    a damaged or unrecorded file, nor a damaged record."""
+    from pipeline.io.files import file_records, verified_file
+
+    (tmp_path / "a.duckdb").write_bytes(b"0123456789")
+    record = tmp_path / "campaign.json"
+    record.write_text(json.dumps({"outputs": file_records(tmp_path, ["a.duckdb"])}))
+    assert verified_file(tmp_path, "a.duckdb", "campaign.json") == tmp_path / "a.duckdb"
+    (tmp_path / "b.rrd").symlink_to(tmp_path / "a.duckdb")
+    with pytest.raises(ValueError, match="b.rrd: not recorded"):
+        verified_file(tmp_path, "b.rrd", "campaign.json")
+    flip_a_byte(tmp_path / "a.duckdb")
+    with pytest.raises(ValueError, match="a.duckdb: not the file .*records"):
+        verified_file(tmp_path, "a.duckdb", "campaign.json")
+    record.write_text(json.dumps({"outputs": {"a.duckdb": [1]}}))
+    with pytest.raises(ValueError, match="not recorded"):
+        verified_file(tmp_path, "a.duckdb", "campaign.json")

@@ -5,9 +5,10 @@ identical runs counted as independent in the percentiles):
 - some stage up to the target, active for the config, reads the key (`Stage.reads_for`; what only
   visuals read changes no table);
 - the paper's sensor reads none of the physical sensor's fields (`PHYSICAL_ONLY`);
-- the world's seed needs a world error (a catalogue or site-map sigma > 0), the jitter's seed a
-  jitter rate > 0; an option of an instrument that is off, of a map or terrain that is not
-  there, is not read (`RunConfig.ignored`);
+- the world's seed needs a world error (a catalogue or site-map sigma > 0); an option of an
+  instrument that is off, of a map or terrain that is not there, of a step that does not run
+  (the jitter's seed without jitter, the robust step's options without it, ...) is not read
+  (`RunConfig.ignored`, unless what decides it is dispersed too);
 - a sweep grid repeats no value, a normal has sigma > 0 and a uniform high > low (checked with
   the spec's keys in `spec`).
 A key is judged on the base with the overrides and on each value of every grid and choice (a
@@ -29,7 +30,6 @@ if TYPE_CHECKING:
 WORLD_SIGMAS = ("catalogue_sigma_horizontal_m", "catalogue_sigma_height_m",
                 "catalogue_sigma_diameter_share", "site_map_sigma_horizontal_m",
                 "site_map_sigma_height_m", "site_map_relative_sigma_m")
-JITTER_RATE = "trajectory.jitter_rate_sigma_rad_s"
 RENDER_WINDOW = ("start_s", "end_s")  # the render section's fields that choose what is drawn
 
 
@@ -114,9 +114,6 @@ def why_ignored(cfg: RunConfig, key: str, target: str, dispersed: set[str]) -> s
             or any(f"detection.{k}" in dispersed for k in WORLD_SIGMAS)):
         return (f"the world has no errors to draw (detection.{WORLD_SIGMAS[0]}, ... are all 0): "
                 "the world's seed changes nothing")
-    if (key == "trajectory.jitter_seed" and cfg.trajectory.jitter_rate_sigma_rad_s == 0
-            and JITTER_RATE not in dispersed):
-        return f"{JITTER_RATE} = 0: the jitter's seed changes nothing"
     if (section == "render" and name not in RENDER_WINDOW and cfg.render.start_s is None
             and not dispersed & {f"render.{k}" for k in RENDER_WINDOW}):
         return ("no frame is rendered (render.start_s and end_s unset): the renderer's options "

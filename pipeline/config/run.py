@@ -226,9 +226,10 @@ class RunConfig:
             return (f"navigation.crater_updates = {n.crater_updates!r} and init = {n.init!r}: "
                     "no fix is taken from a method", ("navigation.crater_updates",
                                                       "navigation.init"))
-        if key == "trajectory.jitter_knot_s" and self.trajectory.jitter_rate_sigma_rad_s == 0:
-            return ("trajectory.jitter_rate_sigma_rad_s = 0: the jitter's knots change nothing",
-                    ("trajectory.jitter_rate_sigma_rad_s",))
+        if (key in ("trajectory.jitter_seed", "trajectory.jitter_knot_s")
+                and self.trajectory.jitter_rate_sigma_rad_s == 0):
+            return ("trajectory.jitter_rate_sigma_rad_s = 0: the jitter's seed and knots change "
+                    "nothing", ("trajectory.jitter_rate_sigma_rad_s",))
         return None
 
     def navigator_imu(self) -> ImuGrade:

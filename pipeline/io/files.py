@@ -120,6 +120,8 @@ def verified_file(folder: Path, name: str, record: str) -> Path:
     path, rec = folder / name, folder / record
     try:
         promised = json.loads(rec.read_text())["outputs"][name]
+        if not isinstance(promised, dict):
+            raise TypeError(name)
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError):
         raise ValueError(f"{path}: not recorded in {rec} (written by another version, or the "
                          "record is damaged)") from None
