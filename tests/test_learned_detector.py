@@ -7,7 +7,8 @@ precision >= 0.8 (skipped without ../shared).
 The tests of the issue's detection targets carry the `targets` marker: `just test-targets` runs
 them. The committed weights (trained on this machine's CPU budget) do not meet them yet, so
 `just test` and `just test-slow` leave them out until a model does; they fail, they are not
-skipped or loosened."""
+skipped or loosened. The left-out real image's target is met (since the decoder's size margin)
+and runs in `just test`."""
 
 from __future__ import annotations
 
@@ -97,8 +98,7 @@ def test_sun_from_the_detected_rims_within_20_deg(detector, held_back) -> None:
     assert np.mean(np.array(errs) < 20.0) >= 0.9, errs
 
 
-@pytest.mark.targets
-def test_left_out_real_image_meets_the_targets() -> None:
+def test_left_out_real_image_meets_the_targets() -> None:  # met since 12-08: in `just test`
     from pipeline.ops.detect_image import read_image, read_labels
 
     png = SHARED_DATA / "lro_nac_craters" / f"{LOO_IMAGE}.png"

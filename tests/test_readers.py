@@ -205,10 +205,10 @@ def test_a_campaigns_record_vouches_only_for_its_own_files(tmp_path):
     record.write_text(json.dumps({"outputs": file_records(tmp_path, ["a.duckdb"])}))
     assert verified_file(tmp_path, "a.duckdb", "campaign.json") == tmp_path / "a.duckdb"
     (tmp_path / "b.rrd").symlink_to(tmp_path / "a.duckdb")
-    with pytest.raises(ValueError, match="b.rrd: not recorded"):
+    with pytest.raises(ValueError, match=r"b\.rrd: not recorded"):
         verified_file(tmp_path, "b.rrd", "campaign.json")
     flip_a_byte(tmp_path / "a.duckdb")
-    with pytest.raises(ValueError, match="a.duckdb: not the file .*records"):
+    with pytest.raises(ValueError, match=r"a\.duckdb: not the file .*records"):
         verified_file(tmp_path, "a.duckdb", "campaign.json")
     record.write_text(json.dumps({"outputs": {"a.duckdb": [1]}}))
     with pytest.raises(ValueError, match="not recorded"):
