@@ -11,10 +11,11 @@ crater lit from one side from a mound lit from the other; the asymmetry comes fr
 (the dark side is darker than the bright side is bright) and from craters outnumbering mounds.
 
 Steps: the image (downsampled by block means to at most `work_px` on its long side) is smoothed
-(Gaussian 1 px) and high-passed (minus a Gaussian of `background_sigma_px`), in units of its
-robust sigma; dark = max(-c - 1, 0), bright = max(c - 1, 0) (c the contrast); X by FFT (zero
-padded); the direction is minus the unit-weighted sum of the antisymmetric part over the shift
-ring, and it signs the light's axis from the gradients' structure tensor (`light_axis`).
+(Gaussian 1 px) and high-passed (minus a Gaussian of `background_sigma_px`, on block means),
+in units of its robust sigma; dark = max(-c - 1, 0), bright = max(c - 1, 0) (c the contrast);
+X by FFT (zero padded); the direction is minus the unit-weighted sum of the antisymmetric part
+over the shift ring, and it signs the light's axis from the gradients' structure tensor
+(`light_axis`).
 `strength` = |sum| / sum |X| over the ring in [0, 1]; an estimate is `reliable` when strength
 >= `min_strength`.
 
@@ -55,8 +56,9 @@ def _block_mean(img: np.ndarray, k: int) -> np.ndarray:
 def _background(img: np.ndarray, sigma_px: float) -> np.ndarray:
     """The image (H, W) smoothed by a Gaussian of `sigma_px` (px, mirrored edges), computed on
     block means of k = floor(sigma / 3) px and interpolated back (bilinear): the background is
-    smooth at that scale (within ~2 % of the contrast's robust sigma of the full-resolution
-    filter on white noise, the worst case), at a quarter of the cost for sigma 12 px."""
+    smooth at that scale. Against the full-resolution filter on a real NAC image (800 px,
+    sigma 12): RMS 0.6 %, at most 7.5 % (at the edges) of the image's robust sigma; a quarter of
+    the cost."""
     k = int(sigma_px // 3)
     h, w = img.shape
     if k < 2 or h < 4 * k or w < 4 * k:
