@@ -235,3 +235,11 @@ def test_a_frame_rate_too_low_for_the_window_gives_no_frame_outside_it():
                                                          "frame_rate_hz": 1e-300}})
     with pytest.raises(ConfigError, match="no frame between start_s"):
         simulate(cfg.trajectory)
+
+
+def test_a_scenario_saved_with_a_byte_order_mark_loads(tmp_path):
+    """Some editors start UTF-8 files with a BOM: it is no content (TOML's parser had said
+    `Invalid statement (line 1, col 1)`)."""
+    path = tmp_path / "bom.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + b'extends = "default"\n[trajectory]\nend_s = 30.0\n')
+    assert load_config(str(path), "bom").trajectory.end_s == 30.0

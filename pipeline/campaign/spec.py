@@ -307,7 +307,7 @@ def _load(path: Path) -> CampaignSpec:
         known = sorted(q.stem for q in campaigns_dir().glob("*.toml"))
         raise ConfigError(f"campaign spec not found (known campaigns: {known})")
     try:
-        text = path.read_bytes().decode("utf-8")
+        text = path.read_bytes().decode("utf-8-sig")  # a BOM (some editors') is no content
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"not valid TOML: {exc}") from None

@@ -131,7 +131,8 @@ def _read_scenario(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     if path.resolve() in seen:
         raise ConfigError(f"{path}: `extends` forms a cycle")
     try:
-        data = tomllib.loads(path.read_text())
+        # utf-8-sig: a byte order mark (some editors write one) is no content
+        data = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
     except UnicodeDecodeError as exc:
