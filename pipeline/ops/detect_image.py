@@ -186,13 +186,27 @@ class Scores:
 
     table: pl.DataFrame
 
+    def counts(self, lo: float = 10.0) -> tuple[int, int, int, int]:
+        """Labels, labels found, detections and detections matched in the bins from `lo` up."""
+        t = self.table.filter(pl.col("diam_lo_px") >= lo)
+        return (int(t["n_labels"].sum()), int(t["n_found"].sum()),
+                int(t["n_detections"].sum()), int(t["n_matched"].sum()))
+
     def line(self, lo: float = 10.0) -> tuple[float, float]:
         """Pooled recall and precision of the bins from `lo` up."""
-        t = self.table.filter(pl.col("diam_lo_px") >= lo)
-        n_lab, n_found = int(t["n_labels"].sum()), int(t["n_found"].sum())
-        n_det, n_true = int(t["n_detections"].sum()), int(t["n_matched"].sum())
+        n_lab, n_found, n_det, n_true = self.counts(lo)
         return (n_found / n_lab if n_lab else float("nan"),
                 n_true / n_det if n_det else float("nan"))
+
+    @staticmethod
+    def pooled(parts: list[Scores]) -> Scores:
+        """The scores of several images' together (their counts summed per bin)."""
+        total = pl.concat([p.table for p in parts]).group_by(
+            "diam_lo_px", "diam_hi_px", maintain_order=True).agg(
+            pl.col("n_labels", "n_found", "n_detections", "n_matched").sum()).with_columns(
+            recall=pl.col("n_found") / pl.col("n_labels"),
+            precision=pl.col("n_matched") / pl.col("n_detections")).fill_nan(None)
+        return Scores(total)
 
 
 def score(det: Detections, label_centre: np.ndarray, label_diam: np.ndarray) -> Scores:
@@ -311,7 +325,7 @@ def run(paths: list[Path], detector: Detector, out_dir: Path, sun_azimuth_deg: f
     if lines:
         return lines, len(lines)
     parts: list[pl.DataFrame] = []
-    pooled: list[pl.DataFrame] = []
+    pooled: list[Scores] = []
     out_dir.mkdir(parents=True, exist_ok=True)
     staging = out_dir / f".detect-image-{os.getpid()}"
     shutil.rmtree(staging, ignore_errors=True)
@@ -335,15 +349,10 @@ def run(paths: list[Path], detector: Detector, out_dir: Path, sun_azimuth_deg: f
                          f"({detector.name}, {ms:.0f} ms); {said}; overlay {out_dir / name}")
             if lab is not None:
                 sc = score(det, lab.centre_px, lab.diam_px)
-                pooled.append(sc.table)
+                pooled.append(sc)
                 lines.extend(_score_lines(sc, f"  against {lab_file}"))
         if len(pooled) > 1:
-            total = pl.concat(pooled).group_by("diam_lo_px", "diam_hi_px",
-                                               maintain_order=True).agg(
-                pl.col("n_labels", "n_found", "n_detections", "n_matched").sum()).with_columns(
-                recall=pl.col("n_found") / pl.col("n_labels"),
-                precision=pl.col("n_matched") / pl.col("n_detections")).fill_nan(None)
-            lines.extend(_score_lines(Scores(total), f"  pooled over {len(pooled)} images"))
+            lines.extend(_score_lines(Scores.pooled(pooled), f"  pooled over {len(pooled)} images"))
         frame = pl.concat(parts) if parts else pl.DataFrame(schema=DETECTIONS_SCHEMA)
         write_parquet(frame, staging / "detections.parquet")
         for name in [*written, "detections.parquet"]:  # renames within one folder

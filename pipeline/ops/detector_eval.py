@@ -108,20 +108,14 @@ def eval_real(detector_for: Callable[[str], Detector], images: list[tuple[str, n
     """Each image (name, grey levels) scored against its labels (centres, diameters) with
     `detector_for(name)` (for leave-one-image-out: the fold that did not see that image), the
     Sun left to the detector."""
-    import polars as pl
-
-    rows = []
-    totals = np.zeros(4, int)
-    every = np.zeros(2, int)  # detections of any size, matched to a label of any size
+    rows, parts = [], []
     for (name, img), (lc, ld, _) in zip(images, labels, strict=True):
         det, _ = detect_image.detect_image(detector_for(name), img, None)
         sc = detect_image.score(det, lc, ld)
         rec, prec = sc.line(10.0)
-        t = sc.table.filter(pl.col("diam_lo_px") >= 10.0)
-        n = np.array([t["n_labels"].sum(), t["n_found"].sum(), t["n_detections"].sum(),
-                      t["n_matched"].sum()], int)
-        totals += n
-        every += [sc.table["n_detections"].sum(), sc.table["n_matched"].sum()]
-        rows.append((name, rec, prec, int(n[0]), int(n[2])))
-    return Real(rows, totals[1] / max(totals[0], 1), totals[3] / max(totals[2], 1),
-                every[1] / max(every[0], 1))
+        n_lab, _, n_det, _ = sc.counts(10.0)
+        rows.append((name, rec, prec, n_lab, n_det))
+        parts.append(sc)
+    pooled = detect_image.Scores.pooled(parts)
+    recall, precision = pooled.line(10.0)
+    return Real(rows, recall, precision, pooled.line(0.0)[1])
